@@ -1,0 +1,1 @@
+"""Command line (Click only): parse, validate, call the library, report."""

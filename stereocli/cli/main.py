@@ -1,0 +1,81 @@
+"""The ``stereocli`` command group.
+
+Subcommands are imported lazily (only the one that runs is loaded), so ``stereocli --help``
+does not pay for numpy, OpenCV or numba imports.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+
+import click
+
+from .. import __version__
+
+#: command name -> (module under stereocli.cli, attribute, one-line help for --help)
+COMMANDS: dict[str, tuple[str, str, str]] = {
+    "calibrate": ("calibrate", "calibrate_cmd", "Checkerboard pairs -> intrinsics, distortion, R, T and a report."),
+    "rectify": ("rectify", "rectify_cmd", "Calibration + pairs -> row-aligned pairs, valid masks, calib.txt."),
+    "match": ("match", "match_cmd", "Rectified pairs -> disparity maps (the configurable pipeline)."),
+    "triangulate": ("triangulate", "triangulate_cmd", "Disparity + calibration -> depth maps and point clouds."),
+    "eval": ("eval", "eval_cmd", "Score disparity maps against ground truth (MiddEval3, v2, KITTI)."),
+    "convert-calib": ("calibrate", "convert_calib_cmd", "Convert calibration files between formats."),
+    "stages": ("stages", "stages_cmd", "List every registered stage and its parameters."),
+    "config": ("config_cmd", "config_group", "Show the effective matching configuration."),
+    "demo": ("demo", "demo_cmd", "Run the whole chain on the bundled samples and print the scores."),
+}
+
+
+class LazyGroup(click.Group):
+    """A group whose subcommands are imported only when used."""
+
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        return list(COMMANDS)
+
+    def get_command(self, ctx: click.Context, name: str) -> click.Command | None:
+        if name not in COMMANDS:
+            return None
+        module_name, attr, _ = COMMANDS[name]
+        module = importlib.import_module(f"stereocli.cli.{module_name}")
+        return getattr(module, attr)
+
+    def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
+        # Use the static help lines so --help imports no subcommand module.
+        rows = [(name, help_) for name, (_, _, help_) in COMMANDS.items()]
+        with formatter.section("Commands"):
+            formatter.write_dl(rows)
+
+
+def _show_versions(ctx: click.Context, _param: click.Parameter, value: bool) -> None:
+    if not value or ctx.resilient_parsing:
+        return
+    from ..runinfo import versions
+
+    for name, version in versions().items():
+        click.echo(f"{name}: {version}")
+    ctx.exit(0)
+
+
+@click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, "--version", prog_name="stereocli")
+@click.option("--show-versions", is_flag=True, expose_value=False, is_eager=True, callback=_show_versions,
+              help="Print Python and dependency versions (for bug reports) and exit.")
+@click.option("-v", "--verbose", count=True, help="More output (-v details, -vv tracebacks).")
+@click.option("-q", "--quiet", count=True, help="Less output (-q: errors only).")
+@click.pass_context
+def cli(ctx: click.Context, verbose: int, quiet: int) -> None:
+    """Stereo vision on image folders: calibrate, rectify, match, triangulate, eval.
+
+    Disparity is float32 pixels referenced to the left image (x_right = x_left - d);
+    invalid pixels are +inf. Run `stereocli demo OUTDIR` to see the whole chain.
+    """
+    ctx.ensure_object(dict)
+    ctx.obj["verbosity"] = verbose - quiet
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Console entry point: run the group and map library errors to exit codes."""
+    from .errors import run_with_error_handling
+
+    sys.exit(run_with_error_handling(cli, argv))

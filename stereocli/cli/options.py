@@ -1,0 +1,23 @@
+"""Options shared by several subcommands, defined once."""
+
+from __future__ import annotations
+
+import click
+
+overwrite = click.option("--overwrite", is_flag=True, help="Replace existing outputs.")
+skip_existing = click.option("--skip-existing", is_flag=True, help="Skip items whose outputs already exist (resume).")
+dry_run = click.option("--dry-run", is_flag=True, help="Print the plan as JSON and write nothing.")
+jobs = click.option("-j", "--jobs", type=click.IntRange(1, 256), default=1, show_default=True,
+                    help="Items processed in parallel (process pool); outputs do not depend on it.")
+output_format = click.option("--format", "fmt", type=click.Choice(["text", "json"]), default="text",
+                             show_default=True, help="Report format on stdout.")
+config_files = click.option("-c", "--config", "config_files", multiple=True, metavar="FILE|PRESET",
+                            help="YAML config file or bundled preset name (repeatable; later wins).")
+sets = click.option("-s", "--set", "sets", multiple=True, metavar="SECTION.KEY=VALUE",
+                    help="Override one config value (repeatable; beats --config).")
+
+
+def verbosity(ctx: click.Context) -> int:
+    """The counted -v minus -q of the root group (0 = normal)."""
+    root = ctx.find_root()
+    return (root.obj or {}).get("verbosity", 0)

@@ -1,0 +1,61 @@
+"""The data every matching stage reads and writes.
+
+Stage contract (see :mod:`stereocli.registry`): ``func(state: MatchState, params) -> None``
+mutates ``state``:
+
+* preprocess: replaces ``left``/``right`` (same shape, float32).
+* cost: sets ``cost`` to a ``(H, W, D)`` C-contiguous float32 volume, ``D = ndisp``,
+  ``cost[y, x, k]`` = dissimilarity of left ``(x, y)`` and right ``(x - (min_disp + k), y)``,
+  lower is better; entries whose right pixel falls outside the image (or outside a valid
+  mask) hold the volume's maximum cost ``cost_max``.
+* aggregation: replaces ``cost`` with an aggregated volume of the same layout.
+* optimizer: sets ``disparity`` (float32, integer-valued, +inf invalid) and leaves in ``cost``
+  the volume its decision was taken on (so sub-pixel refinement, uniqueness and the
+  right-view disparity use the optimised costs); it may set ``disparity_right`` itself.
+* refinement: edits ``disparity`` (and ``disparity_right`` / ``confidence``); stages
+  registered with ``needs_cost=True`` run while ``cost`` is still available (inside each
+  row strip), the others on the full stitched map.
+
+When the image is processed in row strips, ``row_offset`` is the strip's first row in the full
+image and ``rows_valid`` the slice of the strip's rows that is kept (the rest is overlap).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass
+class MatchState:
+    """Images, disparity range and the products of the stages run so far."""
+
+    left: np.ndarray  # (H, W) or (H, W, 3) float32 in [0, 255]
+    right: np.ndarray  # same shape as left
+    min_disp: int  # smallest disparity searched, px (may be negative)
+    ndisp: int  # number of disparities searched: [min_disp, min_disp + ndisp)
+    left_valid: np.ndarray | None = None  # (H, W) bool, False on rectification borders
+    right_valid: np.ndarray | None = None  # (H, W) bool
+    cost: np.ndarray | None = None  # (H, W, D) float32, lower is better
+    cost_max: float = 0.0  # value held by impossible entries of ``cost``
+    disparity: np.ndarray | None = None  # (H, W) float32 px, +inf invalid
+    disparity_right: np.ndarray | None = None  # (H, W) float32 px, right-referenced, +inf invalid
+    confidence: np.ndarray | None = None  # (H, W) float32 in [0, 1]
+    want_right: bool = False  # some later stage or output needs disparity_right
+    row_offset: int = 0
+    threads: int = 0  # 0 = numba default
+    extras: dict = field(default_factory=dict)  # stage-to-stage data (e.g. raw costs for MI)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.left.shape[:2]
+
+    def gray(self, which: str = "left") -> np.ndarray:
+        """The left or right image as (H, W) float32 grey (luma of RGB)."""
+        img = self.left if which == "left" else self.right
+        if img.ndim == 2:
+            return img
+        return (0.299 * img[..., 0] + 0.587 * img[..., 1] + 0.114 * img[..., 2]).astype(
+            np.float32
+        )
