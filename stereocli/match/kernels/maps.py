@@ -1,0 +1,93 @@
+"""Compiled kernels over (H, W) disparity maps: consistency check, filling, median."""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+INF = np.float32(np.inf)
+
+
+@njit(cache=True, parallel=True)
+def lr_check(disp_left: np.ndarray, disp_right: np.ndarray, max_diff: float) -> np.ndarray:
+    """Invalidate left disparities that the right view does not confirm.
+
+    Left pixel x with disparity d maps to right pixel ``xr = round(x - d)``; it is kept when
+    ``|d - disp_right[y, xr]| <= max_diff``. Returns a new float32 map with +inf where rejected.
+    """
+    h, w = disp_left.shape
+    out = disp_left.copy()
+    for y in prange(h):
+        for x in range(w):
+            d = disp_left[y, x]
+            if not np.isfinite(d):
+                continue
+            xr = int(np.floor(x - d + 0.5))
+            if xr < 0 or xr >= w:
+                out[y, x] = INF
+                continue
+            dr = disp_right[y, xr]
+            if not np.isfinite(dr) or abs(d - dr) > max_diff:
+                out[y, x] = INF
+    return out
+
+
+@njit(cache=True, parallel=True)
+def fill_background(disp: np.ndarray) -> np.ndarray:
+    """Fill invalid pixels along each row with the smaller (background) of the nearest valid
+    disparities to the left and right; rows with no valid pixel stay invalid.
+
+    Occlusions next to a foreground object belong to the background surface, hence the minimum
+    (Hirschmüller 2008, §2.5 / the KITTI devkit's background interpolation).
+    """
+    h, w = disp.shape
+    out = disp.copy()
+    for y in prange(h):
+        last = INF
+        left_val = np.empty(w, np.float32)
+        for x in range(w):
+            if np.isfinite(disp[y, x]):
+                last = disp[y, x]
+            left_val[x] = last
+        nxt = INF
+        for x in range(w - 1, -1, -1):
+            if np.isfinite(disp[y, x]):
+                nxt = disp[y, x]
+            else:
+                a = left_val[x]
+                if np.isfinite(a) and np.isfinite(nxt):
+                    out[y, x] = min(a, nxt)
+                elif np.isfinite(a):
+                    out[y, x] = a
+                else:
+                    out[y, x] = nxt
+    return out
+
+
+@njit(cache=True, parallel=True)
+def median_finite(disp: np.ndarray, radius: int) -> np.ndarray:
+    """Median over the finite values of a (2r+1)² window; invalid centres stay invalid.
+
+    Ignoring +inf neighbours keeps holes from eating into valid regions.
+    """
+    h, w = disp.shape
+    out = disp.copy()
+    size = (2 * radius + 1) ** 2
+    for y in prange(h):
+        buf = np.empty(size, np.float32)
+        for x in range(w):
+            if not np.isfinite(disp[y, x]):
+                continue
+            n = 0
+            for yy in range(max(0, y - radius), min(h, y + radius + 1)):
+                for xx in range(max(0, x - radius), min(w, x + radius + 1)):
+                    v = disp[yy, xx]
+                    if np.isfinite(v):
+                        buf[n] = v
+                        n += 1
+            s = np.sort(buf[:n])
+            if n % 2 == 1:
+                out[y, x] = s[n // 2]
+            else:
+                out[y, x] = np.float32(0.5 * (s[n // 2 - 1] + s[n // 2]))
+    return out

@@ -1,0 +1,187 @@
+"""Compiled kernels over (H, W, D) cost volumes: selection, sub-pixel, box aggregation.
+
+Every kernel here has a small pure-numpy reference in ``tests/test_kernels.py``.
+Cost volume layout: ``cost[y, x, k]`` is the cost of left pixel (x, y) against right pixel
+(x - (min_disp + k), y); lower is better; float32, C-contiguous.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+INF = np.float32(np.inf)
+
+
+@njit(cache=True, parallel=True)
+def wta_left(cost: np.ndarray, min_disp: int, cost_max: float):
+    """Winner-take-all along D for each left pixel.
+
+    Returns ``(disparity, best_cost)``: float32 (H, W) integer-valued disparities (``+inf`` where
+    every hypothesis holds ``cost_max``, i.e. nothing could be matched) and the winning cost.
+    Ties go to the smallest disparity (deterministic).
+    """
+    h, w, nd = cost.shape
+    disp = np.empty((h, w), np.float32)
+    best = np.empty((h, w), np.float32)
+    for y in prange(h):
+        for x in range(w):
+            bk = 0
+            bc = cost[y, x, 0]
+            for k in range(1, nd):
+                c = cost[y, x, k]
+                if c < bc:
+                    bc = c
+                    bk = k
+            best[y, x] = bc
+            disp[y, x] = INF if bc >= cost_max else np.float32(min_disp + bk)
+    return disp, best
+
+
+@njit(cache=True, parallel=True)
+def wta_right(cost: np.ndarray, min_disp: int, cost_max: float):
+    """Right-view winner-take-all from the left-referenced volume.
+
+    For right pixel ``xr`` and hypothesis ``k`` the matching left pixel is ``x = xr + d``
+    (``d = min_disp + k``), so ``C_R(xr, k) = cost[y, xr + d, k]`` (Hirschmüller 2008, §2.5).
+    Returns float32 (H, W) right-referenced disparities (``x_left = x_right + d``), +inf where
+    no hypothesis lands inside the image.
+    """
+    h, w, nd = cost.shape
+    disp = np.empty((h, w), np.float32)
+    for y in prange(h):
+        for xr in range(w):
+            bk = -1
+            bc = np.float32(cost_max)
+            for k in range(nd):
+                x = xr + min_disp + k
+                if x < 0 or x >= w:
+                    continue
+                c = cost[y, x, k]
+                if c < bc:
+                    bc = c
+                    bk = k
+            disp[y, xr] = INF if bk < 0 else np.float32(min_disp + bk)
+    return disp
+
+
+@njit(cache=True, inline="always")
+def _subpixel_offset(c0: float, c1: float, c2: float, equiangular: bool) -> float:
+    # c1 is the minimum; c0, c2 its neighbours. Parabola: vertex of the fitted quadratic.
+    # Equiangular (symmetric V, Shimizu & Okutomi 2001) suits costs that are |.|-like.
+    if equiangular:
+        if c0 > c2:
+            den = c0 - c1
+            return 0.0 if den <= 0 else 0.5 * (c0 - c2) / den
+        den = c2 - c1
+        return 0.0 if den <= 0 else 0.5 * (c0 - c2) / den
+    den = c0 - 2.0 * c1 + c2
+    if den <= 0:
+        return 0.0
+    off = 0.5 * (c0 - c2) / den
+    if off > 0.5:
+        off = 0.5
+    elif off < -0.5:
+        off = -0.5
+    return off
+
+
+@njit(cache=True, parallel=True)
+def subpixel_left(cost: np.ndarray, disp: np.ndarray, min_disp: int, equiangular: bool) -> np.ndarray:
+    """Refine integer left disparities to sub-pixel by fitting the costs at d-1, d, d+1.
+
+    Pixels at the ends of the range, or whose neighbours are not both defined, keep the integer.
+    """
+    h, w, nd = cost.shape
+    out = disp.copy()
+    for y in prange(h):
+        for x in range(w):
+            d = disp[y, x]
+            if not np.isfinite(d):
+                continue
+            k = int(d) - min_disp
+            if k <= 0 or k >= nd - 1 or x - (min_disp + k + 1) < 0:
+                continue
+            off = _subpixel_offset(cost[y, x, k - 1], cost[y, x, k], cost[y, x, k + 1], equiangular)
+            out[y, x] = np.float32(d + off)
+    return out
+
+
+@njit(cache=True, parallel=True)
+def subpixel_right(cost: np.ndarray, disp_right: np.ndarray, min_disp: int, equiangular: bool) -> np.ndarray:
+    """Sub-pixel refinement of right-view disparities along the volume's diagonal."""
+    h, w, nd = cost.shape
+    out = disp_right.copy()
+    for y in prange(h):
+        for xr in range(w):
+            d = disp_right[y, xr]
+            if not np.isfinite(d):
+                continue
+            k = int(d) - min_disp
+            if k <= 0 or k >= nd - 1:
+                continue
+            x0 = xr + min_disp + k - 1
+            x2 = xr + min_disp + k + 1
+            if x0 < 0 or x2 >= w:
+                continue
+            off = _subpixel_offset(cost[y, x0, k - 1], cost[y, x0 + 1, k], cost[y, x2, k + 1], equiangular)
+            out[y, xr] = np.float32(d + off)
+    return out
+
+
+@njit(cache=True, parallel=True)
+def _box_rows(src: np.ndarray, radius: int, out: np.ndarray) -> None:
+    # Running sum along x for each row; window clipped at the borders.
+    h, w, nd = src.shape
+    for y in prange(h):
+        acc = np.zeros(nd, np.float64)
+        for x in range(min(radius, w - 1) + 1):
+            acc += src[y, x]
+        for x in range(w):
+            out[y, x] = acc
+            xa = x + radius + 1
+            if xa < w:
+                acc += src[y, xa]
+            xr = x - radius
+            if xr >= 0:
+                acc -= src[y, xr]
+
+
+@njit(cache=True, parallel=True)
+def _box_cols(src: np.ndarray, radius: int, out: np.ndarray, wx: int) -> None:
+    # Running sum along y, parallel over column blocks; divide by the clipped window area.
+    h, w, nd = src.shape
+    nblocks = (w + 31) // 32
+    for b in prange(nblocks):
+        x0 = b * 32
+        x1 = min(w, x0 + 32)
+        acc = np.zeros((x1 - x0, nd), np.float64)
+        for y in range(min(radius, h - 1) + 1):
+            acc += src[y, x0:x1]
+        for y in range(h):
+            ny = min(h - 1, y + radius) - max(0, y - radius) + 1
+            for x in range(x0, x1):
+                nx = min(w - 1, x + wx) - max(0, x - wx) + 1
+                inv = 1.0 / (nx * ny)
+                for k in range(nd):
+                    out[y, x, k] = np.float32(acc[x - x0, k] * inv)
+            ya = y + radius + 1
+            if ya < h:
+                acc += src[ya, x0:x1]
+            yr = y - radius
+            if yr >= 0:
+                acc -= src[yr, x0:x1]
+
+
+def box_filter_volume(cost: np.ndarray, radius_y: int, radius_x: int) -> np.ndarray:
+    """Mean of each cost slice over a (2·radius_y+1) × (2·radius_x+1) window, O(1) per pixel.
+
+    Windows are clipped at the image border (the mean is over the pixels inside). Sums are
+    accumulated in float64 so running sums do not drift.
+    """
+    cost = np.ascontiguousarray(cost, dtype=np.float32)
+    tmp = np.empty(cost.shape, np.float64)
+    _box_rows(cost, radius_x, tmp)
+    out = np.empty(cost.shape, np.float32)
+    _box_cols(tmp, radius_y, out, radius_x)
+    return out

@@ -1,0 +1,1 @@
+"""Synthetic data with known answers (calibration rigs, scenes) for tests, samples and demos."""
