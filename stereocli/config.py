@@ -262,11 +262,11 @@ def validate(config: dict, source: str = "<config>") -> PipelineConfig:
     for section in ("cost", "optimizer"):
         if section not in config:
             raise ConfigError(f"{source}: missing section {section!r}")
-    pre = [_stage_call("preprocess", e, source, f"preprocess[{i}]") for i, e in enumerate(config.get("preprocess", []))]
+    pre = [_stage_call("preprocess", e, source, f"preprocess.{e.get('name')}") for e in config.get("preprocess", [])]
     cost = _stage_call("cost", config["cost"], source, "cost")
-    agg = [_stage_call("aggregation", e, source, f"aggregation[{i}]") for i, e in enumerate(config.get("aggregation", []))]
+    agg = [_stage_call("aggregation", e, source, f"aggregation.{e.get('name')}") for e in config.get("aggregation", [])]
     opt = _stage_call("optimizer", config["optimizer"], source, "optimizer")
-    ref = [_stage_call("refinement", e, source, f"refinement[{i}]") for i, e in enumerate(config.get("refinement", []))]
+    ref = [_stage_call("refinement", e, source, f"refinement.{e.get('name')}") for e in config.get("refinement", [])]
     seen_map_stage = None
     for call in ref:
         if call.stage.needs_cost and seen_map_stage:

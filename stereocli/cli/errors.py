@@ -25,8 +25,9 @@ def run_with_error_handling(cli: click.Group, argv: list[str] | None = None) -> 
     argv = list(sys.argv[1:] if argv is None else argv)
     verbose = _verbosity(argv)
     try:
-        cli.main(args=argv, prog_name="stereocli", standalone_mode=False)
-        return 0
+        # With standalone_mode=False Click *returns* the code of ctx.exit(n) instead of raising.
+        rv = cli.main(args=argv, prog_name="stereocli", standalone_mode=False)
+        return rv if isinstance(rv, int) else 0
     except click.exceptions.Exit as exc:
         return exc.exit_code
     except click.ClickException as exc:

@@ -71,7 +71,7 @@ def cli(ctx: click.Context, verbose: int, quiet: int) -> None:
     invalid pixels are +inf. Run `stereocli demo OUTDIR` to see the whole chain.
     """
     ctx.ensure_object(dict)
-    ctx.obj["verbosity"] = verbose - quiet
+    ctx.obj["verbosity"] = ctx.obj.get("verbosity", 0) + verbose - quiet
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -17,6 +17,23 @@ sets = click.option("-s", "--set", "sets", multiple=True, metavar="SECTION.KEY=V
                     help="Override one config value (repeatable; beats --config).")
 
 
+def _add_verbosity(delta: int):
+    def callback(ctx: click.Context, _param: click.Parameter, value: int) -> None:
+        root = ctx.find_root()
+        root.ensure_object(dict)
+        root.obj["verbosity"] = root.obj.get("verbosity", 0) + delta * value
+
+    return callback
+
+
+def verbose(func):
+    """Counted -v/-q accepted after the subcommand too (``stereocli match ... -v``)."""
+    func = click.option("-v", "--verbose", count=True, expose_value=False, callback=_add_verbosity(1),
+                        help="More output (-v details, -vv tracebacks).")(func)
+    return click.option("-q", "--quiet", count=True, expose_value=False, callback=_add_verbosity(-1),
+                        help="Less output.")(func)
+
+
 def verbosity(ctx: click.Context) -> int:
     """The counted -v minus -q of the root group (0 = normal)."""
     root = ctx.find_root()

@@ -1,0 +1,96 @@
+"""``stereocli match``: rectified pairs -> disparity maps."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from . import options
+from .common import argv, finish_batch, print_json, unpaired_failures
+
+
+@click.command("match")
+@click.argument("inputs", nargs=-1, required=True, type=click.Path())
+@click.option("-o", "--output", "outdir", required=True, type=click.Path(file_okay=False),
+              help="Output folder; each pair writes OUTDIR/<name>/disp0.pfm.")
+@options.config_files
+@options.sets
+@click.option("--ndisp", type=click.IntRange(1, 100000), help="Number of disparities searched (else calib.txt ndisp).")
+@click.option("--min-disp", type=int, default=None, help="Smallest disparity searched, px (default 0; may be negative).")
+@click.option("--png16", "png16_scale", type=float, default=None, metavar="SCALE",
+              help="Also write disp0.png as uint16 round(d*SCALE), 0 = invalid (KITTI uses 256).")
+@click.option("--npy", is_flag=True, help="Also write disp0.npy (float32).")
+@click.option("--viz", is_flag=True, help="Also write disp0_viz.png, an 8-bit colour preview (not data).")
+@click.option("--confidence", is_flag=True, help="Also write conf0.pfm, per-pixel confidence in [0, 1].")
+@click.option("--right", is_flag=True, help="Also write disp1.pfm, the right-view disparity.")
+@click.option("--keep-invalid", is_flag=True, help="Skip hole filling: invalid pixels stay +inf.")
+@options.overwrite
+@options.skip_existing
+@options.dry_run
+@options.jobs
+@options.verbose
+@click.pass_context
+def match_cmd(ctx, inputs, outdir, config_files, sets, ndisp, min_disp, png16_scale, npy, viz, confidence,
+              right, keep_invalid, overwrite, skip_existing, dry_run, jobs):
+    """Compute disparity maps for rectified pairs.
+
+    INPUT is a pair of image files, a scene folder (im0.png + im1.png [+ calib.txt]), a folder
+    of scene folders, or a folder with left/ and right/ subfolders paired by file stem.
+    The disparity range comes from --ndisp/--min-disp, else from each scene's calib.txt.
+
+    \b
+    Examples:
+      stereocli match samples/scenes -o out
+      stereocli match left.png right.png -o out --ndisp 64 --set optimizer.p2=120
+      stereocli match data/ -o out -c fast --jobs 2 --skip-existing
+    """
+    from ..batch import run_batch
+    from ..config import build_config
+    from ..io.pairs import discover_pairs
+    from ..match.run import match_item, plan_items
+    from ..runinfo import RunRecord, versions
+
+    verbosity = options.verbosity(ctx)
+    config = build_config(config_files, sets)
+    effective = config.as_dict()
+    pairs, problems = discover_pairs(inputs)
+    items = plan_items(pairs, outdir, config=effective, ndisp=ndisp, min_disp=min_disp, png16_scale=png16_scale,
+                       npy=npy, viz=viz, confidence=confidence, right=right, keep_invalid=keep_invalid,
+                       record_info={"versions": versions(), "config_sources": config.sources})
+    if dry_run:
+        print_json({"command": "match", "config": effective, "config_sources": config.sources,
+                    "unpaired": problems,
+                    "items": [{"name": i.name, "inputs": i.inputs, "outputs": i.outputs,
+                               "min_disp": i.options["min_disp"], "ndisp": i.options["ndisp"]} for i in items]})
+        return
+    if verbosity >= 1:
+        _report_memory(items, config)
+    for problem in problems:
+        click.echo(f"Warning: {problem}", err=True)
+    result = run_batch(items, match_item, jobs=jobs, overwrite=overwrite, skip_existing=skip_existing,
+                       desc="match", verbose_errors=verbosity >= 2)
+    record = RunRecord("match", argv(), effective)
+    code = finish_batch(result, record, Path(outdir) / "run.json", verbosity, unpaired_failures(problems))
+    ctx.exit(code)
+
+
+def _report_memory(items, config) -> None:
+    from ..io.images import read_image
+    from ..match.pipeline import GIB, estimate_memory, plan_strips
+
+    for item in items:
+        try:
+            h, w = read_image(item.inputs["left"], gray=True).shape[:2]
+        except Exception:  # noqa: BLE001 - reported properly when the item runs
+            continue
+        nd = item.options["ndisp"]
+        whole = estimate_memory(config, h, w, nd) / GIB
+        try:
+            strips = plan_strips(config, h, w, nd)
+            rows = strips[0][1] - strips[0][0] + 2 * (config.runtime.strip_overlap if len(strips) > 1 else 0)
+            peak = estimate_memory(config, min(h, rows), w, nd) / GIB
+            click.echo(f"{item.name}: {w}x{h}, ndisp {nd}: estimated memory {whole:.2f} GiB whole image; "
+                       f"{len(strips)} strip(s), peak ~{peak:.2f} GiB (budget {config.runtime.memory_gb:g} GiB)", err=True)
+        except Exception as exc:  # noqa: BLE001
+            click.echo(f"{item.name}: {exc}", err=True)

@@ -1,0 +1,185 @@
+"""Matching as batch work: plan items from inputs, and the item function workers run.
+
+Outputs per pair, in ``OUTDIR/<name>/``:
+
+* ``disp0.pfm`` — float32 disparity, +inf invalid (always);
+* ``disp0.png`` — uint16 ``round(d * scale)``, 0 invalid (``png16_scale`` set);
+* ``disp0.npy`` — float32 array (``npy``);
+* ``disp0_viz.png`` — 8-bit colour preview, not data (``viz``);
+* ``conf0.pfm`` — confidence in [0, 1] (``confidence``); ``disp1.pfm`` — right view (``right``);
+* ``time.txt`` — matching seconds (Middlebury convention);
+* ``params.json`` — effective config, versions, disparity range, timings per stage.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..batch import WorkItem
+from ..errors import ConfigError, DataError
+from ..io.atomic import write_text
+from ..io.pairs import StereoInput
+
+_CONFIG_CACHE: dict[str, Any] = {}
+
+
+def resolve_range(pair: StereoInput, ndisp: int | None, min_disp: int | None) -> tuple[int, int, dict]:
+    """Disparity range for a pair: options first, else its ``calib.txt``, else a ConfigError.
+
+    Returns ``(min_disp, ndisp, calib_info)`` where ``calib_info`` holds vmin/vmax for previews.
+    """
+    info: dict = {}
+    if pair.calib:
+        from ..io.middlebury import read_calib_txt
+
+        calib = read_calib_txt(pair.calib)
+        info = {"vmin": calib.vmin, "vmax": calib.vmax}
+        if ndisp is None and calib.ndisp > 0:
+            ndisp = calib.ndisp
+    if ndisp is None:
+        raise ConfigError(
+            f"{pair.name}: no disparity range: give --ndisp N (and --min-disp) or put a calib.txt with ndisp= in "
+            f"{pair.folder or Path(pair.left).parent}"
+        )
+    return int(min_disp or 0), int(ndisp), info
+
+
+def plan_items(
+    pairs: list[StereoInput],
+    outdir: str | Path,
+    *,
+    config: dict,
+    ndisp: int | None,
+    min_disp: int | None,
+    png16_scale: float | None = None,
+    npy: bool = False,
+    viz: bool = False,
+    confidence: bool = False,
+    right: bool = False,
+    keep_invalid: bool = False,
+    record_info: dict | None = None,
+) -> list[WorkItem]:
+    """One :class:`WorkItem` per pair with its inputs, outputs and options."""
+    outdir = Path(outdir)
+    items = []
+    for pair in pairs:
+        lo, nd, info = resolve_range(pair, ndisp, min_disp)
+        folder = outdir / pair.name
+        outputs = {"disparity": str(folder / "disp0.pfm"), "time": str(folder / "time.txt"),
+                   "params": str(folder / "params.json")}
+        if png16_scale:
+            outputs["png16"] = str(folder / "disp0.png")
+        if npy:
+            outputs["npy"] = str(folder / "disp0.npy")
+        if viz:
+            outputs["viz"] = str(folder / "disp0_viz.png")
+        if confidence:
+            outputs["confidence"] = str(folder / "conf0.pfm")
+        if right:
+            outputs["right"] = str(folder / "disp1.pfm")
+        inputs = {"left": pair.left, "right": pair.right}
+        for key in ("calib", "left_valid", "right_valid"):
+            if getattr(pair, key):
+                inputs[key] = getattr(pair, key)
+        options = {"config": config, "min_disp": lo, "ndisp": nd, "png16_scale": png16_scale,
+                   "keep_invalid": keep_invalid, "vmin": info.get("vmin"), "vmax": info.get("vmax"),
+                   "record": record_info or {}}
+        items.append(WorkItem(pair.name, inputs, outputs, options))
+    return items
+
+
+def _config(config: dict):
+    # Workers validate the config once per process, not once per item.
+    from ..config import validate
+
+    key = json.dumps(config, sort_keys=True)
+    if key not in _CONFIG_CACHE:
+        _CONFIG_CACHE[key] = validate(config, "effective config")
+    return _CONFIG_CACHE[key]
+
+
+def _load_mask(path: str | None) -> np.ndarray | None:
+    if not path:
+        return None
+    from ..io.images import read_image
+
+    mask = read_image(path, gray=True)
+    return mask > 127
+
+
+def _remove_stale_temporaries(folder: Path) -> None:
+    # A killed earlier run may have left temporary files (never under the final names).
+    if folder.is_dir():
+        for tmp in folder.glob(".*.tmp*"):
+            tmp.unlink(missing_ok=True)
+
+
+def match_item(item: WorkItem) -> dict:
+    """Match one pair and write its outputs atomically; returns details for the run record."""
+    from ..io.images import read_image, write_disparity, write_image
+    from ..io.pfm import write_pfm
+    from .pipeline import match_pair
+
+    opts = item.options
+    config = _config(opts["config"])
+    _remove_stale_temporaries(Path(item.outputs["disparity"]).parent)
+    t_load = time.perf_counter()
+    left = read_image(item.inputs["left"])
+    right = read_image(item.inputs["right"])
+    if left.shape[:2] != right.shape[:2]:
+        raise DataError(
+            f"{item.name}: left {left.shape[1]}x{left.shape[0]} and right {right.shape[1]}x{right.shape[0]} differ in size"
+        )
+    if left.ndim != right.ndim:
+        # One colour and one grey view: match in grey.
+        left = read_image(item.inputs["left"], gray=True)
+        right = read_image(item.inputs["right"], gray=True)
+    left_valid = _load_mask(item.inputs.get("left_valid"))
+    right_valid = _load_mask(item.inputs.get("right_valid"))
+    load_seconds = time.perf_counter() - t_load
+
+    t0 = time.perf_counter()
+    result = match_pair(left, right, config, min_disp=opts["min_disp"], ndisp=opts["ndisp"],
+                        left_valid=left_valid, right_valid=right_valid,
+                        want_right="right" in item.outputs, keep_invalid=opts["keep_invalid"])
+    seconds = time.perf_counter() - t0
+
+    out = item.outputs
+    write_pfm(out["disparity"], result.disparity)
+    if "png16" in out:
+        write_disparity(out["png16"], result.disparity, png_scale=opts["png16_scale"])
+    if "npy" in out:
+        write_disparity(out["npy"], result.disparity)
+    if "viz" in out:
+        from ..viz import colorize_disparity
+
+        write_image(out["viz"], colorize_disparity(result.disparity, opts.get("vmin"), opts.get("vmax")))
+    if "confidence" in out:
+        conf = result.confidence
+        if conf is None:
+            raise ConfigError("--confidence: the configured pipeline produces no confidence map "
+                              "(add a refinement stage that does, e.g. {name: confidence})")
+        write_pfm(out["confidence"], conf)
+    if "right" in out:
+        write_pfm(out["right"], result.disparity_right)
+    h, w = result.disparity.shape
+    finite = np.isfinite(result.disparity)
+    details = {
+        "width": w, "height": h, "min_disp": opts["min_disp"], "ndisp": opts["ndisp"],
+        "seconds": round(seconds, 4), "load_seconds": round(load_seconds, 4),
+        "stage_seconds": result.timings, "strips": result.strips,
+        "memory_estimate_gb": round(result.memory_estimate_gb, 3),
+        "mde_per_s": round(w * h * opts["ndisp"] / max(seconds, 1e-9) / 1e6, 2),
+        "valid_fraction": round(float(finite.mean()), 6),
+    }
+    params = {"pair": item.name, "inputs": item.inputs, "config": opts["config"], **details,
+              **opts.get("record", {})}
+    write_text(out["params"], json.dumps(params, indent=2) + "\n")
+    # time.txt last: its presence marks a complete result for resumption tools.
+    write_text(out["time"], f"{seconds:.6f}\n")
+    return details

@@ -1,0 +1,113 @@
+"""Registry and configuration: validation errors name the file, key, choices and close matches."""
+
+from __future__ import annotations
+
+import pytest
+
+from stereocli import registry
+from stereocli.config import build_config, parse_set
+from stereocli.errors import ConfigError
+
+
+def test_every_stage_has_summary_and_documented_params():
+    for stage in registry.stages():
+        assert stage.summary, f"{stage.kind}.{stage.name} has no docstring"
+        for spec in stage.param_specs():
+            assert spec.help, f"{stage.kind}.{stage.name}.{spec.name} has no help"
+
+
+def test_default_preset_validates_and_round_trips(tmp_path):
+    cfg = build_config()
+    dumped = tmp_path / "effective.yaml"
+    dumped.write_text(cfg.to_yaml())
+    again = build_config([str(dumped)])
+    assert again.as_dict() == cfg.as_dict()
+
+
+def test_precedence_defaults_file_set(tmp_path):
+    f = tmp_path / "mine.yaml"
+    f.write_text("cost: {name: census, window: [5, 5]}\n")
+    assert build_config([str(f)]).cost.params.window == (5, 5)
+    assert build_config([str(f)], ["cost.window=[3,3]"]).cost.params.window == (3, 3)
+
+
+def test_changing_stage_name_drops_old_params(tmp_path):
+    cfg = build_config(sets=["cost.name=ad"])
+    assert cfg.cost.stage.name == "ad"
+
+
+def test_set_edits_listed_stage_by_name():
+    cfg = build_config(sets=["refinement.lr_check.max_diff=2.5"])
+    [lr] = [c for c in cfg.refinement if c.stage.name == "lr_check"]
+    assert lr.params.max_diff == 2.5
+
+
+@pytest.mark.parametrize(
+    "content, expected",
+    [
+        ("cost: {name: censsus}\n", ["cost.name", "censsus", "did you mean 'census'"]),
+        ("cost: {name: census, windw: [7, 9]}\n", ["cost.windw", "did you mean 'window'", "valid: window"]),
+        ("cost: {name: census, window: seven}\n", ["cost.window", "expected a pair"]),
+        ("refinement: [{name: median, size: 99}]\n", ["median", "size", "out of range"]),
+        ("refinement: [{name: subpixel, method: cubic}]\n", ["method", "'cubic' is not one of", "parabola"]),
+        ("optimiser: {name: wta}\n", ["optimiser", "unknown section", "did you mean 'optimizer'"]),
+        ("cost: [1, 2\n", ["invalid YAML"]),
+    ],
+)
+def test_config_errors_name_file_and_key(tmp_path, content, expected):
+    f = tmp_path / "bad.yaml"
+    f.write_text(content)
+    with pytest.raises(ConfigError) as info:
+        build_config([str(f)])
+    message = str(info.value)
+    assert str(f) in message
+    for part in expected:
+        assert part in message
+
+
+def test_set_errors():
+    with pytest.raises(ConfigError, match="expected section.key=value"):
+        parse_set("costwindow")
+    with pytest.raises(ConfigError, match="no stage 'lr_chek'.*did you mean 'lr_check'"):
+        build_config(sets=["refinement.lr_chek.max_diff=2"])
+    with pytest.raises(ConfigError, match="expected true or false|expected a number"):
+        build_config(sets=["refinement.lr_check.max_diff=yes"])
+
+
+def test_unknown_preset_lists_presets():
+    with pytest.raises(ConfigError, match="presets: .*default.*fast"):
+        build_config(["fsat"])
+
+
+def test_bundled_presets_validate():
+    from stereocli.config import preset_names
+
+    names = preset_names()
+    assert {"default", "fast"} <= set(names)
+    for name in names:
+        build_config([name])
+
+
+def test_registry_lookup_errors_and_listing():
+    assert "census" in registry.names("cost")
+    assert registry.names("cost", "cen*") == ["census"] or "census" in registry.names("cost", "cen*")
+    with pytest.raises(ConfigError, match="unknown cost stage 'censos'.*did you mean 'census'"):
+        registry.get("cost", "censos")
+
+
+def test_duplicate_registration_is_an_error():
+    from dataclasses import dataclass
+
+    @dataclass(frozen=True)
+    class P:
+        pass
+
+    @registry.register("aggregation", "dup_test", P)
+    def first(state, p):
+        """First."""
+
+    try:
+        with pytest.raises(ValueError, match="registered twice"):
+            registry.register("aggregation", "dup_test", P)(first)
+    finally:
+        registry._unregister("aggregation", "dup_test")
