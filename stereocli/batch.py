@@ -13,6 +13,7 @@ JSON-able dict of details for the run record.
 from __future__ import annotations
 
 import concurrent.futures as cf
+import glob
 import multiprocessing
 import os
 import sys
@@ -81,6 +82,7 @@ def check_outputs(items: list[WorkItem], *, overwrite: bool, skip_existing: bool
 def _run_one(item_fn: Callable[[WorkItem], dict], item: WorkItem, verbose_errors: bool) -> ItemResult:
     t0 = time.perf_counter()
     try:
+        remove_temporaries(item)  # left by an attempt whose process died (killed worker, earlier run)
         details = item_fn(item) or {}
         status, message = "ok", ""
     except StereoError as exc:
@@ -134,9 +136,10 @@ def run_batch(
     """Run ``item_fn`` over ``items``; returns per-item results in input order.
 
     ``executor``: ``"inline"`` (default for 1 job), ``"process"`` (default for ``jobs > 1``)
-    or ``"dask"`` (``scheduler`` = ``tcp://host:port`` or ``local``). Failed items are retried
-    up to ``retries`` times. Outputs are never half-written because item functions write
-    atomically.
+    or ``"dask"`` (``scheduler`` = ``tcp://host:port`` or ``local``; the default whenever
+    ``scheduler`` is given). Failed items are retried up to ``retries`` times. Outputs are never
+    half-written because item functions write atomically; temporaries left beside the outputs
+    of items that finally failed are removed.
     """
     items = list(items)
     check_outputs(items, overwrite=overwrite, skip_existing=skip_existing)
@@ -148,11 +151,24 @@ def run_batch(
                                     outputs=item.outputs)
         else:
             todo.append(i)
+    if executor is None and scheduler:
+        executor = "dask"
     executor = executor or ("process" if jobs > 1 and len(todo) > 1 else "inline")
+    if executor == "dask":
+        from .distributed import check_scheduler
+
+        check_scheduler(scheduler)  # fail before any work: bad address or Dask not installed
     bar = _progress(len(todo), desc, progress)
     try:
         attempt = 0
         pending = todo
+        if executor == "dask" and pending:
+            # The cluster retries within one session (no reconnect or new LocalCluster per round).
+            from .distributed import run_dask
+
+            done = run_dask([items[i] for i in pending], item_fn, verbose_errors, bar, scheduler, retries, jobs=jobs)
+            results.update(zip(pending, done))
+            pending = []
         while pending:
             attempt += 1
             done = _execute(executor, [items[i] for i in pending], item_fn, jobs, verbose_errors, bar,
@@ -163,7 +179,24 @@ def run_batch(
             pending = [i for i in pending if results[i].status == "failed"] if attempt <= retries else []
     finally:
         bar.close()
+    for i in todo:
+        if results[i].status == "failed":
+            remove_temporaries(items[i])
     return BatchResult([results[i] for i in range(len(items))])
+
+
+def remove_temporaries(item: WorkItem) -> None:
+    """Delete temporary files a dead attempt may have left beside ``item``'s outputs.
+
+    Matches only the names :func:`stereocli.io.atomic.atomic_path` gives the temporaries of
+    these outputs (``.<stem>.<8 random chars>.tmp<suffix>``, from :func:`tempfile.mkstemp`), never
+    files under final names nor temporaries of other outputs in the same folder.
+    """
+    for out in item.outputs.values():
+        path = Path(out)
+        if path.parent.is_dir():
+            for tmp in path.parent.glob(f".{glob.escape(path.stem)}.{'?' * 8}.tmp{glob.escape(path.suffix)}"):
+                tmp.unlink(missing_ok=True)
 
 
 def _execute(executor, items, item_fn, jobs, verbose_errors, bar, scheduler, retries) -> list[ItemResult]:
@@ -192,5 +225,5 @@ def _execute(executor, items, item_fn, jobs, verbose_errors, bar, scheduler, ret
     if executor == "dask":
         from .distributed import run_dask
 
-        return run_dask(items, item_fn, verbose_errors, bar, scheduler, retries)
+        return run_dask(items, item_fn, verbose_errors, bar, scheduler, retries, jobs=jobs)
     raise ValueError(f"unknown executor {executor!r}")

@@ -83,7 +83,8 @@ class Stage:
     ``func(state, params)`` runs the stage on a :class:`stereocli.match.state.MatchState`.
     ``needs_cost`` marks refinement stages that read the cost volume (they run inside each row
     strip, before the volume is dropped); ``needs_right`` marks stages that need the right-view
-    disparity (the pipeline computes it from the final cost volume when the optimizer did not).
+    disparity (the pipeline computes it from the final cost volume when the optimizer did not);
+    ``fills_holes`` marks stages that fill invalid pixels (``match --keep-invalid`` skips them).
     """
 
     kind: str
@@ -94,6 +95,7 @@ class Stage:
     doc: str
     needs_cost: bool = False
     needs_right: bool = False
+    fills_holes: bool = False
 
     def param_specs(self) -> list[ParamSpec]:
         hints = typing.get_type_hints(self.params_cls)
@@ -213,6 +215,7 @@ def register(
     *,
     needs_cost: bool = False,
     needs_right: bool = False,
+    fills_holes: bool = False,
 ) -> Callable[[Callable], Callable]:
     """Decorator: register ``func(state, params)`` as stage ``name`` of ``kind``.
 
@@ -230,7 +233,7 @@ def register(
         doc = (func.__doc__ or "").strip()
         summary = doc.splitlines()[0] if doc else ""
         _REGISTRY[kind][name] = Stage(
-            kind, name, func, params_cls, summary, doc, needs_cost, needs_right
+            kind, name, func, params_cls, summary, doc, needs_cost, needs_right, fills_holes
         )
         return func
 

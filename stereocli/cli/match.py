@@ -29,10 +29,14 @@ from .common import argv, finish_batch, print_json, unpaired_failures
 @options.skip_existing
 @options.dry_run
 @options.jobs
+@options.scheduler
+@options.retries
+@click.option("--split-strips/--no-split-strips", "split_strips", default=None,
+              help="Spread the row strips of each large pair over the Dask workers (default: on with --scheduler).")
 @options.verbose
 @click.pass_context
 def match_cmd(ctx, inputs, outdir, config_files, sets, ndisp, min_disp, png16_scale, npy, viz, confidence,
-              right, keep_invalid, overwrite, skip_existing, dry_run, jobs):
+              right, keep_invalid, overwrite, skip_existing, dry_run, jobs, scheduler, retries, split_strips):
     """Compute disparity maps for rectified pairs.
 
     INPUT is a pair of image files, a scene folder (im0.png + im1.png [+ calib.txt]), a folder
@@ -44,20 +48,27 @@ def match_cmd(ctx, inputs, outdir, config_files, sets, ndisp, min_disp, png16_sc
       stereocli match samples/scenes -o out
       stereocli match left.png right.png -o out --ndisp 64 --set optimizer.p2=120
       stereocli match data/ -o out -c fast --jobs 2 --skip-existing
+      stereocli match data/ -o out --scheduler tcp://127.0.0.1:8786 --retries 2
     """
     from ..batch import run_batch
     from ..config import build_config
+    from ..errors import ConfigError
     from ..io.pairs import discover_pairs
     from ..match.run import match_item, plan_items
     from ..runinfo import RunRecord, versions
 
     verbosity = options.verbosity(ctx)
+    if split_strips and not scheduler:
+        raise ConfigError("--split-strips spreads strips over Dask workers: give --scheduler tcp://HOST:PORT or local")
     config = build_config(config_files, sets)
     effective = config.as_dict()
     pairs, problems = discover_pairs(inputs)
     items = plan_items(pairs, outdir, config=effective, ndisp=ndisp, min_disp=min_disp, png16_scale=png16_scale,
                        npy=npy, viz=viz, confidence=confidence, right=right, keep_invalid=keep_invalid,
                        record_info={"versions": versions(), "config_sources": config.sources})
+    if scheduler and split_strips is not False:
+        for item in items:
+            item.options["split_strips"] = True  # pairs with one strip run whole on one worker
     if dry_run:
         print_json({"command": "match", "config": effective, "config_sources": config.sources,
                     "unpaired": problems,
@@ -69,7 +80,7 @@ def match_cmd(ctx, inputs, outdir, config_files, sets, ndisp, min_disp, png16_sc
     for problem in problems:
         click.echo(f"Warning: {problem}", err=True)
     result = run_batch(items, match_item, jobs=jobs, overwrite=overwrite, skip_existing=skip_existing,
-                       desc="match", verbose_errors=verbosity >= 2)
+                       desc="match", verbose_errors=verbosity >= 2, scheduler=scheduler, retries=retries)
     record = RunRecord("match", argv(), effective)
     code = finish_batch(result, record, Path(outdir) / "run.json", verbosity, unpaired_failures(problems))
     ctx.exit(code)

@@ -9,6 +9,12 @@ skip_existing = click.option("--skip-existing", is_flag=True, help="Skip items w
 dry_run = click.option("--dry-run", is_flag=True, help="Print the plan as JSON and write nothing.")
 jobs = click.option("-j", "--jobs", type=click.IntRange(1, 256), default=1, show_default=True,
                     help="Items processed in parallel (process pool); outputs do not depend on it.")
+scheduler = click.option(
+    "--scheduler", metavar="tcp://HOST:PORT|local", default=None,
+    help="Run items on a Dask cluster (needs pip install \"stereocli[dask]\"); 'local' starts a LocalCluster "
+         "of --jobs worker processes (default 2). Workers must see the same input and output paths.")
+retries = click.option("--retries", type=click.IntRange(0, 100), default=0, show_default=True,
+                       help="Run a failed item again up to N more times (any executor).")
 output_format = click.option("--format", "fmt", type=click.Choice(["text", "json"]), default="text",
                              show_default=True, help="Report format on stdout.")
 config_files = click.option("-c", "--config", "config_files", multiple=True, metavar="FILE|PRESET",

@@ -142,8 +142,10 @@ def _fs_open(path: Path, mode: int):
 
     try:
         fs = cv2.FileStorage(str(path), mode)
-    except cv2.error as exc:
-        msg = str(exc).strip().splitlines()[-1] if str(exc).strip() else "parse error"
+    except (cv2.error, SystemError) as exc:  # SystemError: OpenCV's parser error surfacing through pybind
+        cause = exc.__cause__ or exc.__context__ or exc
+        lines = str(cause).strip().splitlines()
+        msg = lines[-1].strip() if lines else "parse error"
         raise DataError(f"{path}: corrupt OpenCV FileStorage file ({msg})") from None
     if not fs.isOpened():
         raise DataError(f"{path}: cannot open as OpenCV FileStorage")

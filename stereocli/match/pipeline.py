@@ -5,12 +5,18 @@ refinements (``needs_cost``) → stitch → map refinements (whole image). With 
 usual case when the volume fits the memory budget) this is the plain pipeline. Strip layout
 depends only on the image size and the config, never on the thread or job count, so output is
 deterministic.
+
+The three phases are separate functions so a cluster can run one pair's strips on different
+workers: :func:`prepare` (checks, preprocess, strip plan) → :func:`run_strip` per strip (pure:
+a cropped state in, the kept rows out) → :func:`finish` (stitch in plan order, map
+refinements). :func:`match_pair` is exactly these three in one process.
 """
 
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 
@@ -22,6 +28,8 @@ from .refine import clear_invalid_left
 from .state import MatchState
 
 GIB = 1024.0**3
+#: Interpreter, numpy/numba/OpenCV libraries and compiled kernels (measured RSS before matching).
+RUNTIME_BASE = 0.35 * GIB
 
 
 @dataclass
@@ -37,16 +45,28 @@ class MatchResult:
 
 
 def volume_copies(config: PipelineConfig) -> float:
-    """How many (H, W, D) float32 volumes the heaviest stage holds at once (incl. its input)."""
+    """Peak number of (H, W, D) float32-sized volumes alive at once.
+
+    Each stage function may carry a ``volume_copies`` attribute: the extra volumes it holds
+    beside its input (float32 units, so a uint16 copy counts 0.5). Cost stages have no input
+    volume and default to 0 (just their output); other stages default to 1.
+    """
     calls = [config.cost, *config.aggregation, config.optimizer]
-    return 1.0 + max(getattr(c.stage.func, "volume_copies", 1.0) for c in calls)
+    extra = [getattr(c.stage.func, "volume_copies", 0.0 if c.stage.kind == "cost" else 1.0) for c in calls]
+    return 1.0 + max(extra)
 
 
 def estimate_memory(config: PipelineConfig, height: int, width: int, ndisp: int) -> float:
-    """Estimated peak bytes for one strip of ``height`` rows (volumes + image-sized buffers)."""
+    """Estimated peak bytes for one strip of ``height`` rows (volumes + image-sized buffers).
+
+    An optimizer may add fixed per-strip buffers through a ``buffer_bytes(params, width, ndisp)``
+    attribute (e.g. SGM's path-cost rows).
+    """
     volume = float(height) * width * ndisp * 4
     images = float(height) * width * 4 * 24  # images, census strings, disparities, masks
-    return volume * volume_copies(config) + images
+    buffers = getattr(config.optimizer.stage.func, "buffer_bytes", None)
+    fixed = RUNTIME_BASE + (float(buffers(config.optimizer.params, width, ndisp)) if buffers else 0.0)
+    return volume * volume_copies(config) + images + fixed
 
 
 def plan_strips(config: PipelineConfig, height: int, width: int, ndisp: int) -> list[tuple[int, int]]:
@@ -57,8 +77,9 @@ def plan_strips(config: PipelineConfig, height: int, width: int, ndisp: int) -> 
         return [(0, height)]
     rows = rt.strip_rows
     if rows == 0:
-        per_row = estimate_memory(config, 1, width, ndisp)
-        rows = int(budget // per_row) - 2 * rt.strip_overlap
+        fixed = estimate_memory(config, 0, width, ndisp)
+        per_row = estimate_memory(config, 1, width, ndisp) - fixed
+        rows = int((budget - fixed) // per_row) - 2 * rt.strip_overlap
         # Strip height is rounded down to a multiple of 16 so the plan is stable.
         rows = (rows // 16) * 16
     needed = estimate_memory(config, min(height, rows + 2 * rt.strip_overlap), width, ndisp)
@@ -79,7 +100,36 @@ def _as_valid(mask: np.ndarray | None, shape: tuple[int, int], what: str) -> np.
     return np.ascontiguousarray(mask > 0 if mask.dtype != bool else mask)
 
 
-def match_pair(
+@dataclass
+class PreparedPair:
+    """A pair after preprocessing, with its strip plan (input of :func:`run_strip`/:func:`finish`)."""
+
+    state: MatchState  # whole-image state after the preprocess stages
+    strips: list[tuple[int, int]]  # kept row ranges [(y0, y1), ...]
+    overlap: int  # context rows added above and below each strip
+    keep_invalid: bool = False
+    timings: dict[str, float] = field(default_factory=dict)  # preprocess seconds per stage
+
+
+@dataclass
+class StripResult:
+    """Products of the volume stages on one strip: only the kept rows ``[y0, y1)``."""
+
+    y0: int
+    y1: int
+    disparity: np.ndarray  # (y1 - y0, W) px, +inf invalid
+    disparity_right: np.ndarray | None = None
+    confidence: np.ndarray | None = None
+    extras: dict = field(default_factory=dict)
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+def _refinements(config: PipelineConfig, keep_invalid: bool) -> list:
+    # --keep-invalid drops every hole-filling stage (registered with fills_holes=True).
+    return [c for c in config.refinement if not (keep_invalid and c.stage.fills_holes)]
+
+
+def prepare(
     left: np.ndarray,
     right: np.ndarray,
     config: PipelineConfig,
@@ -90,22 +140,11 @@ def match_pair(
     right_valid: np.ndarray | None = None,
     want_right: bool = False,
     keep_invalid: bool = False,
-) -> MatchResult:
-    """Compute the left disparity map of a rectified pair.
+) -> PreparedPair:
+    """Validate inputs, run the preprocess stages on the whole image and plan the row strips.
 
-    Parameters
-    ----------
-    left, right : (H, W) or (H, W, 3) arrays (uint8, uint16 or float32 in [0, 255]).
-    config : validated pipeline configuration (:func:`stereocli.config.build_config`).
-    min_disp, ndisp : search range ``[min_disp, min_disp + ndisp)`` in pixels.
-    left_valid, right_valid : optional (H, W) masks of pixels that may be matched (e.g.
-        rectification borders are invalid); invalid left pixels come out +inf.
-    want_right : also return the right-view disparity.
-    keep_invalid : skip ``fill`` stages so holes stay +inf.
-
-    Returns
-    -------
-    MatchResult with float32 disparity (+inf invalid) and per-stage timings in seconds.
+    Parameters are those of :func:`match_pair`. The strip plan depends only on the image size
+    and ``config`` (never on threads or workers), so every executor stitches the same strips.
     """
     from ..io.images import to_float_image
 
@@ -116,7 +155,7 @@ def match_pair(
     _set_threads(config.runtime.threads)
     shape = left.shape[:2]
     timings: dict[str, float] = {}
-    refinements = [c for c in config.refinement if not (keep_invalid and c.stage.name == "fill")]
+    refinements = _refinements(config, keep_invalid)
     want_right = want_right or any(c.stage.needs_right for c in refinements)
     state = MatchState(
         left=to_float_image(np.ascontiguousarray(left)),
@@ -130,41 +169,129 @@ def match_pair(
     )
     for call in config.preprocess:
         _timed(timings, f"preprocess.{call.stage.name}", call.stage.func, state, call.params)
-
     strips = plan_strips(config, shape[0], shape[1], ndisp)
-    volume_stages = [c for c in refinements if c.stage.needs_cost]
-    map_stages = [c for c in refinements if not c.stage.needs_cost]
-    disparity = np.empty(shape, np.float32)
-    disparity_right = np.empty(shape, np.float32) if want_right else None
-    confidence = None
     overlap = config.runtime.strip_overlap if len(strips) > 1 else 0
-    for y0, y1 in strips:
-        a, b = max(0, y0 - overlap), min(shape[0], y1 + overlap)
-        sub = _strip_state(state, a, b)
-        _run_volume_stages(sub, config, volume_stages, timings)
-        keep = slice(y0 - a, y1 - a)
-        disparity[y0:y1] = sub.disparity[keep]
-        if want_right:
-            disparity_right[y0:y1] = sub.disparity_right[keep]
-        if sub.confidence is not None:
+    return PreparedPair(state, strips, overlap, keep_invalid, timings)
+
+
+def strip_input(prepared: PreparedPair, y0: int, y1: int) -> MatchState:
+    """The state one strip's volume stages start from: rows ``[y0, y1)`` plus overlap context.
+
+    A fresh state (cropped copies of the images and masks, its own ``extras`` dict), so it can
+    be shipped to another process and run there with :func:`run_strip`.
+    """
+    state = prepared.state
+    a, b = max(0, y0 - prepared.overlap), min(state.shape[0], y1 + prepared.overlap)
+    return _strip_state(state, a, b)
+
+
+def run_strip(sub: MatchState, config: PipelineConfig, y0: int, y1: int, *,
+              keep_invalid: bool = False) -> StripResult:
+    """Run cost → aggregation → optimizer → volume refinements on one strip state.
+
+    ``sub`` comes from :func:`strip_input` (``sub.row_offset`` is its first image row); only
+    the kept rows ``[y0, y1)`` are returned. A pure function of its arguments: running a strip
+    in another process gives the same arrays.
+    """
+    _set_threads(config.runtime.threads)
+    timings: dict[str, float] = {}
+    volume_stages = [c for c in _refinements(config, keep_invalid) if c.stage.needs_cost]
+    _run_volume_stages(sub, config, volume_stages, timings)
+    keep = slice(y0 - sub.row_offset, y1 - sub.row_offset)
+    whole = keep.start == 0 and keep.stop == sub.shape[0]
+    crop = lambda m: None if m is None else (m if whole else np.ascontiguousarray(m[keep]))  # noqa: E731
+    return StripResult(y0, y1, crop(sub.disparity), crop(sub.disparity_right) if sub.want_right else None,
+                       crop(sub.confidence), sub.extras, timings)
+
+
+def finish(prepared: PreparedPair, results: list[StripResult], config: PipelineConfig) -> MatchResult:
+    """Stitch strip results (in plan order) and run the whole-image refinements."""
+    state = prepared.state
+    shape = state.shape
+    if [(r.y0, r.y1) for r in results] != list(prepared.strips):
+        raise ValueError("strip results do not match the strip plan")
+    timings = dict(prepared.timings)
+    disparity = np.empty(shape, np.float32)
+    disparity_right = np.empty(shape, np.float32) if state.want_right else None
+    confidence = None
+    for r in results:
+        disparity[r.y0:r.y1] = r.disparity
+        if state.want_right:
+            disparity_right[r.y0:r.y1] = r.disparity_right
+        if r.confidence is not None:
             if confidence is None:
                 confidence = np.zeros(shape, np.float32)
-            confidence[y0:y1] = sub.confidence[keep]
-        state.extras.update(sub.extras)
+            confidence[r.y0:r.y1] = r.confidence
+        state.extras.update(r.extras)
+        for key, seconds in r.timings.items():
+            timings[key] = timings.get(key, 0.0) + seconds
 
+    map_stages = [c for c in _refinements(config, prepared.keep_invalid) if not c.stage.needs_cost]
     state.cost = None
     state.disparity, state.disparity_right, state.confidence = disparity, disparity_right, confidence
     for call in map_stages:
         _timed(timings, f"refinement.{call.stage.name}", call.stage.func, state, call.params)
     clear_invalid_left(state)
+    strips, overlap = prepared.strips, prepared.overlap
     return MatchResult(
         disparity=np.ascontiguousarray(state.disparity, dtype=np.float32),
         disparity_right=state.disparity_right,
         confidence=state.confidence,
         timings={k: round(v, 6) for k, v in timings.items()},
         strips=len(strips),
-        memory_estimate_gb=estimate_memory(config, min(shape[0], strips[0][1] + 2 * overlap), shape[1], ndisp) / GIB,
+        memory_estimate_gb=estimate_memory(config, min(shape[0], strips[0][1] + 2 * overlap), shape[1],
+                                           state.ndisp) / GIB,
     )
+
+
+StripMap = Callable[[PreparedPair, PipelineConfig], list[StripResult]]
+
+
+def run_strips(prepared: PreparedPair, config: PipelineConfig) -> list[StripResult]:
+    """All strips of a prepared pair, one after the other in this process (bounded memory:
+    one strip's volumes at a time)."""
+    return [run_strip(strip_input(prepared, y0, y1), config, y0, y1, keep_invalid=prepared.keep_invalid)
+            for y0, y1 in prepared.strips]
+
+
+def match_pair(
+    left: np.ndarray,
+    right: np.ndarray,
+    config: PipelineConfig,
+    *,
+    min_disp: int = 0,
+    ndisp: int,
+    left_valid: np.ndarray | None = None,
+    right_valid: np.ndarray | None = None,
+    want_right: bool = False,
+    keep_invalid: bool = False,
+    strip_map: StripMap | None = None,
+) -> MatchResult:
+    """Compute the left disparity map of a rectified pair.
+
+    Equivalent to ``finish(p, run_strips(p, config), config)`` with ``p = prepare(...)``.
+
+    Parameters
+    ----------
+    left, right : (H, W) or (H, W, 3) arrays (uint8, uint16 or float32 in [0, 255]).
+    config : validated pipeline configuration (:func:`stereocli.config.build_config`).
+    min_disp, ndisp : search range ``[min_disp, min_disp + ndisp)`` in pixels.
+    left_valid, right_valid : optional (H, W) masks of pixels that may be matched (e.g.
+        rectification borders are invalid); invalid left pixels come out +inf.
+    want_right : also return the right-view disparity.
+    keep_invalid : skip ``fill`` stages so holes stay +inf.
+    strip_map : runs the strips of a prepared pair and returns their results in plan order
+        (default :func:`run_strips`, in this process); e.g. spread over Dask workers by
+        :func:`stereocli.match.split.cluster_strip_map`. The output does not depend on it.
+
+    Returns
+    -------
+    MatchResult with float32 disparity (+inf invalid) and per-stage timings in seconds.
+    """
+    prepared = prepare(left, right, config, min_disp=min_disp, ndisp=ndisp, left_valid=left_valid,
+                       right_valid=right_valid, want_right=want_right, keep_invalid=keep_invalid)
+    results = (strip_map or run_strips)(prepared, config)
+    return finish(prepared, results, config)
 
 
 def _strip_state(state: MatchState, a: int, b: int) -> MatchState:

@@ -10,8 +10,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..errors import ConfigError
 from ..registry import param, register
 from .kernels import maps as km
+from .kernels import refine as kr
 from .kernels.volume import subpixel_left, subpixel_right
 from .state import MatchState
 
@@ -58,13 +60,11 @@ class MedianParams:
 def median(state: MatchState, p: MedianParams) -> None:
     """Median filter over valid disparities only (holes neither spread nor get filled)."""
     if p.size % 2 == 0:
-        from ..errors import ConfigError
-
         raise ConfigError(f"refinement.median.size: {p.size} must be odd")
-    state.disparity = km.median_finite(state.disparity, p.size // 2)
+    state.disparity = kr.median_valid(state.disparity, p.size // 2)
 
 
-@register("refinement", "fill")
+@register("refinement", "fill", fills_holes=True)
 def fill(state: MatchState, params) -> None:
     """Fill invalid pixels along scanlines with the background (smaller) neighbouring disparity.
 
@@ -72,6 +72,95 @@ def fill(state: MatchState, params) -> None:
     skips this stage.
     """
     state.disparity = km.fill_background(state.disparity)
+
+
+@dataclass(frozen=True)
+class UniquenessParams:
+    ratio: float = param(0.05, "reject when a non-adjacent hypothesis costs less than best / (1 - ratio) (OpenCV uniquenessRatio / 100)", low=0.0, high=0.9)
+
+
+@register("refinement", "uniqueness", UniquenessParams, needs_cost=True)
+def uniqueness(state: MatchState, p: UniquenessParams) -> None:
+    """Invalidate ambiguous pixels: the winner must beat every hypothesis more than 1 px away
+    by the margin ``ratio`` (OpenCV's uniqueness check, on the optimised costs)."""
+    state.disparity = kr.uniqueness(state.cost, state.disparity, state.min_disp, float(p.ratio))
+
+
+@dataclass(frozen=True)
+class ConfidenceParams:
+    lr_scale: float = param(1.0, "left-right disagreement at which the LR factor falls to 1/e", unit="px", low=0.01, high=100.0)
+    margin_scale: float = param(0.1, "cost margin 1 - best/second at which the uniqueness factor reaches 1", low=0.001, high=1.0)
+
+
+@register("refinement", "confidence", ConfidenceParams, needs_cost=True)
+def confidence(state: MatchState, p: ConfidenceParams) -> None:
+    """Per-pixel confidence in [0, 1] (``match --confidence``): cost uniqueness × LR agreement.
+
+    ``min(1, (1 − c_best/c_second)/margin_scale) · exp(−|d_L − d_R|/lr_scale)``, 0 where invalid;
+    c_second is the best hypothesis more than 1 px from the winner. Uses the right-view map when
+    one exists (e.g. ``lr_check`` in the list); place it after ``subpixel``.
+    """
+    right = state.disparity_right if state.disparity_right is not None else np.zeros((0, 0), np.float32)
+    state.confidence = kr.confidence(state.cost, state.disparity, right, state.min_disp,
+                                     float(p.lr_scale), float(p.margin_scale))
+
+
+@dataclass(frozen=True)
+class SpeckleParams:
+    max_size: int = param(100, "largest connected region (px) removed as a speckle", unit="px", low=0, high=100000)
+    max_diff: float = param(1.0, "neighbours differing by at most this belong to the same region", unit="px", low=0.0, high=100.0)
+
+
+@register("refinement", "speckle", SpeckleParams)
+def speckle(state: MatchState, p: SpeckleParams) -> None:
+    """Remove small connected regions of similar disparity (isolated mismatches).
+
+    Connected components with 4-neighbours differing by ≤ ``max_diff``; regions of at most
+    ``max_size`` pixels become invalid (OpenCV ``filterSpeckles`` on a ×16 int16 copy, so
+    disparities must lie in (−2048, 2048)).
+    """
+    import cv2
+
+    d = state.disparity
+    finite = np.isfinite(d)
+    marker = np.int16(-32768)
+    fixed = np.where(finite, np.round(np.clip(np.where(finite, d, 0), -2047, 2047) * 16), marker).astype(np.int16)
+    cv2.filterSpeckles(fixed, int(marker), int(p.max_size), int(round(p.max_diff * 16)))
+    state.disparity = np.where(fixed == marker, np.float32(np.inf), d).astype(np.float32)
+
+
+@dataclass(frozen=True)
+class InterpolateParams:
+    max_dist: int = param(0, "search at most this far for valid neighbours (0 = unlimited)", unit="px", low=0, high=100000)
+    tol: float = param(1.0, "a hole is a mismatch when a right pixel maps back to it within tol", unit="px", low=0.0, high=10.0)
+
+
+@register("refinement", "interpolate", InterpolateParams, needs_right=True, fills_holes=True)
+def interpolate(state: MatchState, p: InterpolateParams) -> None:
+    """Classify holes as occluded or mismatched and fill them (Hirschmüller 2008 §2.5).
+
+    A hole is mismatched when some right-view pixel maps onto it, occluded otherwise.
+    Occlusions take the background: the second-lowest of the nearest valid values in 8
+    directions; mismatches take their median. ``match --keep-invalid`` skips this stage.
+    """
+    right = state.disparity_right if state.disparity_right is not None else np.zeros((0, 0), np.float32)
+    label = kr.classify_holes(state.disparity, right, state.min_disp, state.min_disp + state.ndisp - 1, float(p.tol))
+    state.disparity = kr.interpolate_holes(state.disparity, label, int(p.max_dist))
+
+
+@dataclass(frozen=True)
+class BilateralParams:
+    radius: int = param(3, "window half size", unit="px", low=1, high=20)
+    sigma_space: float = param(3.0, "spatial Gaussian sigma", unit="px", low=0.1, high=50.0)
+    sigma_color: float = param(10.0, "intensity Gaussian sigma on the left grey image", unit="grey levels", low=0.1, high=255.0)
+
+
+@register("refinement", "bilateral", BilateralParams)
+def bilateral(state: MatchState, p: BilateralParams) -> None:
+    """Joint bilateral filter of the valid disparities guided by the left image (smooths
+    surfaces, keeps depth edges that coincide with intensity edges)."""
+    state.disparity = kr.joint_bilateral(state.disparity, np.ascontiguousarray(state.gray("left")), int(p.radius),
+                                         float(p.sigma_space), float(p.sigma_color))
 
 
 def clear_invalid_left(state: MatchState) -> None:

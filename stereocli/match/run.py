@@ -143,10 +143,16 @@ def match_item(item: WorkItem) -> dict:
     right_valid = _load_mask(item.inputs.get("right_valid"))
     load_seconds = time.perf_counter() - t_load
 
+    strip_map = None
+    if opts.get("split_strips"):
+        from .split import cluster_strip_map
+
+        strip_map = cluster_strip_map(opts["config"])
     t0 = time.perf_counter()
     result = match_pair(left, right, config, min_disp=opts["min_disp"], ndisp=opts["ndisp"],
                         left_valid=left_valid, right_valid=right_valid,
-                        want_right="right" in item.outputs, keep_invalid=opts["keep_invalid"])
+                        want_right="right" in item.outputs, keep_invalid=opts["keep_invalid"],
+                        strip_map=strip_map)
     seconds = time.perf_counter() - t0
 
     out = item.outputs

@@ -12,6 +12,9 @@ mutates ``state``:
 * optimizer: sets ``disparity`` (float32, integer-valued, +inf invalid) and leaves in ``cost``
   the volume its decision was taken on (so sub-pixel refinement, uniqueness and the
   right-view disparity use the optimised costs); it may set ``disparity_right`` itself.
+  That volume may be **uint16** instead of float32 (``sgm`` leaves its path-cost sums, with
+  ``cost_max`` = 65535): every kernel that reads ``cost`` after the optimizer (sub-pixel,
+  WTA, uniqueness, confidence, ``mask_invalid_right``) accepts float32 and uint16.
 * refinement: edits ``disparity`` (and ``disparity_right`` / ``confidence``); stages
   registered with ``needs_cost=True`` run while ``cost`` is still available (inside each
   row strip), the others on the full stitched map.
@@ -37,7 +40,7 @@ class MatchState:
     ndisp: int  # number of disparities searched: [min_disp, min_disp + ndisp)
     left_valid: np.ndarray | None = None  # (H, W) bool, False on rectification borders
     right_valid: np.ndarray | None = None  # (H, W) bool
-    cost: np.ndarray | None = None  # (H, W, D) float32, lower is better
+    cost: np.ndarray | None = None  # (H, W, D) float32 (uint16 after sgm), lower is better
     cost_max: float = 0.0  # value held by impossible entries of ``cost``
     disparity: np.ndarray | None = None  # (H, W) float32 px, +inf invalid
     disparity_right: np.ndarray | None = None  # (H, W) float32 px, right-referenced, +inf invalid

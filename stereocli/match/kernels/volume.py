@@ -2,15 +2,18 @@
 
 Every kernel here has a small pure-numpy reference in ``tests/test_kernels.py``.
 Cost volume layout: ``cost[y, x, k]`` is the cost of left pixel (x, y) against right pixel
-(x - (min_disp + k), y); lower is better; float32, C-contiguous.
+(x - (min_disp + k), y); lower is better; float32 or uint16 (SGM sums), C-contiguous.
 """
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 from numba import njit, prange
 
 INF = np.float32(np.inf)
+#: Most channels the OpenCV Python binding converts for its filters (a volume is fed as H×W×D).
+CV_MAX_CHANNELS = 128
 
 
 @njit(cache=True, parallel=True)
@@ -66,9 +69,13 @@ def wta_right(cost: np.ndarray, min_disp: int, cost_max: float):
 
 
 @njit(cache=True, inline="always")
-def _subpixel_offset(c0: float, c1: float, c2: float, equiangular: bool) -> float:
+def _subpixel_offset(a0: float, a1: float, a2: float, equiangular: bool) -> float:
     # c1 is the minimum; c0, c2 its neighbours. Parabola: vertex of the fitted quadratic.
     # Equiangular (symmetric V, Shimizu & Okutomi 2001) suits costs that are |.|-like.
+    # Cast first: volumes may be uint16 (SGM sums), whose differences would wrap around.
+    c0 = np.float64(a0)
+    c1 = np.float64(a1)
+    c2 = np.float64(a2)
     if equiangular:
         if c0 > c2:
             den = c0 - c1
@@ -129,59 +136,23 @@ def subpixel_right(cost: np.ndarray, disp_right: np.ndarray, min_disp: int, equi
     return out
 
 
-@njit(cache=True, parallel=True)
-def _box_rows(src: np.ndarray, radius: int, out: np.ndarray) -> None:
-    # Running sum along x for each row; window clipped at the borders.
-    h, w, nd = src.shape
-    for y in prange(h):
-        acc = np.zeros(nd, np.float64)
-        for x in range(min(radius, w - 1) + 1):
-            acc += src[y, x]
-        for x in range(w):
-            out[y, x] = acc
-            xa = x + radius + 1
-            if xa < w:
-                acc += src[y, xa]
-            xr = x - radius
-            if xr >= 0:
-                acc -= src[y, xr]
-
-
-@njit(cache=True, parallel=True)
-def _box_cols(src: np.ndarray, radius: int, out: np.ndarray, wx: int) -> None:
-    # Running sum along y, parallel over column blocks; divide by the clipped window area.
-    h, w, nd = src.shape
-    nblocks = (w + 31) // 32
-    for b in prange(nblocks):
-        x0 = b * 32
-        x1 = min(w, x0 + 32)
-        acc = np.zeros((x1 - x0, nd), np.float64)
-        for y in range(min(radius, h - 1) + 1):
-            acc += src[y, x0:x1]
-        for y in range(h):
-            ny = min(h - 1, y + radius) - max(0, y - radius) + 1
-            for x in range(x0, x1):
-                nx = min(w - 1, x + wx) - max(0, x - wx) + 1
-                inv = 1.0 / (nx * ny)
-                for k in range(nd):
-                    out[y, x, k] = np.float32(acc[x - x0, k] * inv)
-            ya = y + radius + 1
-            if ya < h:
-                acc += src[ya, x0:x1]
-            yr = y - radius
-            if yr >= 0:
-                acc -= src[yr, x0:x1]
-
-
 def box_filter_volume(cost: np.ndarray, radius_y: int, radius_x: int) -> np.ndarray:
     """Mean of each cost slice over a (2·radius_y+1) × (2·radius_x+1) window, O(1) per pixel.
 
-    Windows are clipped at the image border (the mean is over the pixels inside). Sums are
-    accumulated in float64 so running sums do not drift.
+    Windows are clipped at the image border (the mean is over the pixels inside). OpenCV's
+    running-sum box filter treats the D slices as channels (at most 128 per call), summing
+    in double precision, then each window sum is divided by its pixel count.
     """
     cost = np.ascontiguousarray(cost, dtype=np.float32)
-    tmp = np.empty(cost.shape, np.float64)
-    _box_rows(cost, radius_x, tmp)
-    out = np.empty(cost.shape, np.float32)
-    _box_cols(tmp, radius_y, out, radius_x)
+    h, w, nd = cost.shape
+    ksize = (2 * radius_x + 1, 2 * radius_y + 1)
+    count = cv2.boxFilter(np.ones((h, w), np.float32), -1, ksize, normalize=False,
+                          borderType=cv2.BORDER_CONSTANT)
+    inv = (1.0 / count).astype(np.float32)[..., None]
+    out = np.empty_like(cost)
+    for k0 in range(0, nd, CV_MAX_CHANNELS):
+        k1 = min(nd, k0 + CV_MAX_CHANNELS)
+        chunk = cost if (k0 == 0 and k1 == nd) else np.ascontiguousarray(cost[:, :, k0:k1])
+        total = cv2.boxFilter(chunk, -1, ksize, normalize=False, borderType=cv2.BORDER_CONSTANT)
+        np.multiply(total.reshape(h, w, k1 - k0), inv, out=out[:, :, k0:k1])
     return out

@@ -1,0 +1,100 @@
+"""Semi-global matching (Hirschmüller 2008): the default optimizer.
+
+The cost volume is quantised to uint8 (uint16 when a finer scale is needed), the float volume
+is released, and the path costs of 2, 4, 8 or 16 directions are summed into a uint16 volume
+``S`` that replaces ``state.cost`` (so sub-pixel fitting, uniqueness, confidence and the
+right-view disparity work on the optimised costs). Peak memory is about ``H·W·D·5`` bytes: the
+float costs plus the uint8 copy while quantising, then the uint8 copy plus the forward and
+backward uint16 sums, plus ``O(W·D)`` row buffers (``buffer_bytes``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ...errors import ConfigError
+from ...registry import param, register
+from ..kernels import sgm as ks
+from ..state import MatchState
+
+#: Largest value of the aggregated volume (``state.cost_max`` after SGM); sums stay below it.
+S_MAX = 65535
+
+
+@dataclass(frozen=True)
+class SGMParams:
+    paths: int = param(8, "number of path directions: 2 = scanlines only (fast, streaky), 4, 8, 16", choices=(2, 4, 8, 16))
+    p1: float = param(0.4, "penalty for a 1-px disparity change, as a fraction of the cost's range (cost_max)", unit="× cost_max", low=0.0, high=10.0)
+    p2: float = param(1.5, "penalty for larger disparity jumps, as a fraction of cost_max (clamped to ≥ p1)", unit="× cost_max", low=0.0, high=20.0)
+    p2_gamma: float = param(16.0, "adaptive P2 = max(P1, P2·γ/(γ+|ΔI|)) from the left image gradient along the path; 0 = constant P2", unit="grey levels", low=0.0, high=1000.0)
+    levels: int = param(255, "quantisation levels for the matching costs (255 keeps them in uint8)", low=15, high=4095)
+
+
+def quantization(cost_max: float, paths: int, p1: float, p2: float, levels: int) -> tuple[float, int, int, int]:
+    """Scale, cap and integer penalties for quantising a cost volume.
+
+    Costs in ``[0, cost_max]`` map to ``[0, cap]`` with ``cap ≤ levels``; the penalties are
+    fractions of ``cost_max``. The scale is reduced if needed so ``paths · (cap + P2) ≤ 65534``,
+    which bounds the uint16 path sums (see :mod:`stereocli.match.kernels.sgm`).
+    """
+    cmax = cost_max if cost_max > 0 else 1.0
+    p2 = max(p2, p1)
+    levels = min(levels, int(65534 // (paths * (1.0 + p2))))
+    scale = levels / cmax
+    cap = int(round(cost_max * scale)) if cost_max > 0 else levels
+    return scale, max(cap, 1), int(round(p1 * levels)), int(round(p2 * levels))
+
+
+def run_sgm(state: MatchState, p: SGMParams) -> None:
+    """Run SGM on ``state.cost``; sets ``disparity`` and replaces ``cost`` by the uint16 sums."""
+    if state.cost is None:
+        raise ConfigError("optimizer.sgm: no cost volume (the cost stage did not run)")
+    cost = state.cost
+    scale, cap, p1, p2 = quantization(state.cost_max, p.paths, p.p1, p.p2, p.levels)
+    cq = np.empty(cost.shape, np.uint8 if cap <= 255 else np.uint16)
+    if cost.dtype == np.float32:
+        ks.quantize(cost, scale, cap, cq)
+    else:  # an integer volume (uint16 contract): same rounding in float32
+        ks.quantize(cost.astype(np.float32), scale, cap, cq)
+    # Release the float volume before allocating the sums (peak memory, see module docstring).
+    state.cost = None
+    del cost
+    guide = np.ascontiguousarray(state.gray("left"), dtype=np.float32)
+    acc, state.disparity, right = ks.sgm_aggregate(cq, guide, p.paths, p1, p2, float(p.p2_gamma),
+                                                   state.min_disp, state.want_right)
+    if right is not None:
+        state.disparity_right = right
+    del cq
+    state.cost = acc
+    state.cost_max = float(S_MAX)
+    state.extras["sgm_scale"] = scale
+
+
+@register("optimizer", "sgm", SGMParams)
+def sgm(state: MatchState, p: SGMParams) -> None:
+    """Semi-global matching: sum of 1-D smoothness-constrained path costs (Hirschmüller 2008).
+
+    P1 penalises 1-px disparity steps (slanted surfaces), P2 larger jumps (discontinuities);
+    P2 shrinks across strong intensity edges (``p2_gamma``) where depth edges are likely.
+    Penalties are fractions of the cost's range, so one setting suits census, AD-census, BT or
+    MI costs. Works for any disparity range (negative ``min_disp``, any ``ndisp``); the output
+    is bit-identical for any thread count. Replaces the cost volume by the uint16 path sums.
+    """
+    run_sgm(state, p)
+
+
+# Peak extra (H, W, D) float32-equivalents held by the stage beside its input: the uint8 copy
+# while the float input is alive (0.25); afterwards uint8 + 2 × uint16 = 1.25 in total, the
+# same peak. (levels > 255 use a uint16 copy: 0.5.)
+sgm.volume_copies = 0.25
+
+
+def _buffer_bytes(p: SGMParams, width: int, ndisp: int) -> float:
+    """Path-cost row buffers of both passes: 3 rows × directions × (D + 2) int16 each."""
+    nk = len(ks.DOWN_DIRECTIONS[p.paths])
+    return 2 * (3 * width * nk * (ndisp + 2) * 2 + 4 * width * nk * 3)
+
+
+sgm.buffer_bytes = _buffer_bytes

@@ -1,0 +1,126 @@
+"""Segmentation-based refinement stages: locally consistent voting and per-segment planes.
+
+Both edit the full disparity map (they do not read the cost volume), so they run after the
+row strips are stitched. Put them after ``lr_check`` (so unreliable pixels are +inf) and
+before ``fill``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from .kernels import segment as ks
+from ..registry import param, register
+from .state import MatchState
+
+
+def _colour(image: np.ndarray) -> np.ndarray:
+    """(H, W) or (H, W, C) float32 -> (H, W, C) float32 C-contiguous."""
+    image = image if image.ndim == 3 else image[..., None]
+    return np.ascontiguousarray(image, dtype=np.float32)
+
+
+@dataclass(frozen=True)
+class LocalConsistencyParams:
+    radius: int = param(9, "half side of the voting window", unit="px", low=1, high=50)
+    gamma_s: float = param(9.0, "γs: spatial falloff of a neighbour's vote", unit="px", low=0.1, high=1000.0)
+    gamma_c: float = param(12.0, "γc: colour falloff in the left image", unit="grey levels", low=0.1, high=1000.0)
+    gamma_t: float = param(12.0, "γt: colour falloff between the matched points in the right image", unit="grey levels", low=0.1, high=1000.0)
+    fill_invalid: bool = param(False, "also give invalid (+inf) pixels the winning vote")
+
+
+@register("refinement", "local_consistency", LocalConsistencyParams)
+def local_consistency(state: MatchState, p: LocalConsistencyParams) -> None:
+    """Locally consistent refinement (Mattoccia 2009): neighbours vote for disparity hypotheses.
+
+    Each valid neighbour within ``radius`` votes for its disparity, weighted by proximity, by
+    colour similarity in the left image and by colour similarity of the two points the
+    hypothesis maps to in the right image; each pixel takes the best-supported hypothesis
+    (weighted mean within the winning 1-px bin). Removes isolated errors and aligns
+    disparity edges with colour edges; O(radius²) per pixel. Sets ``confidence`` to the
+    winner's share of the votes.
+    """
+    disp, conf = ks.local_consistency(
+        np.ascontiguousarray(state.disparity, dtype=np.float32), _colour(state.left), _colour(state.right),
+        state.min_disp, state.ndisp, p.radius, float(p.gamma_s), float(p.gamma_c), float(p.gamma_t),
+        bool(p.fill_invalid),
+    )
+    state.disparity = disp
+    state.confidence = conf
+
+
+@dataclass(frozen=True)
+class PlaneFitParams:
+    method: str = param("ransac", "plane estimator per segment", choices=("ransac", "histogram"))
+    spatial_radius: int = param(5, "mean-shift spatial window radius (cv2.pyrMeanShiftFiltering sp)", unit="px", low=1, high=100)
+    colour_radius: float = param(6.0, "mean-shift colour window radius (sr)", unit="grey levels", low=1.0, high=255.0)
+    tolerance: float = param(2.0, "neighbours whose filtered colours differ by at most this join a segment", unit="grey levels", low=0.0, high=255.0)
+    min_size: int = param(30, "smaller segments are merged into a neighbour", unit="px", low=1, high=100000)
+    min_points: int = param(20, "fit a plane only with at least this many reliable pixels", low=3, high=1000000)
+    min_reliable: float = param(0.25, "...and at least this share of the segment reliable", low=0.0, high=1.0)
+    min_inliers: float = param(0.8, "use a plane only if this share of its reliable pixels fit it", low=0.0, high=1.0)
+    inlier: float = param(1.0, "a reliable pixel within this distance of the plane is an inlier", unit="px", low=0.01, high=100.0)
+    outlier: float = param(3.0, "with replace: outliers, replace pixels farther than this from their segment's plane", unit="px", low=0.01, high=1000.0)
+    replace: str = param("invalid", "which pixels of a segment with a trusted plane take the plane: invalid ones (occlusions, LR failures), also outliers, or all", choices=("invalid", "outliers", "all"))
+    iterations: int = param(200, "RANSAC samples per segment", low=1, high=100000)
+    slope_bin: float = param(0.05, "histogram method: width of the slope voting bin", unit="px/px", low=0.001, high=10.0)
+    seed: int = param(0, "RNG seed of the RANSAC sampling (results are reproducible)", low=0, high=2**31 - 1)
+
+
+def segment_image(image: np.ndarray, spatial_radius: int, colour_radius: float, tolerance: float, min_size: int) -> np.ndarray:
+    """Colour segmentation: mean-shift filtering (OpenCV) + tolerant connected components.
+
+    Parameters
+    ----------
+    image : (H, W) or (H, W, 3) float32 in [0, 255].
+
+    Returns
+    -------
+    (H, W) int32 segment labels 0..n-1.
+    """
+    img = _colour(image)
+    if img.shape[2] == 1:
+        img = np.repeat(img, 3, axis=2)
+    img8 = np.clip(np.rint(img[..., :3]), 0, 255).astype(np.uint8)
+    filtered = cv2.pyrMeanShiftFiltering(img8, float(spatial_radius), float(colour_radius))
+    return ks.label_regions(np.ascontiguousarray(filtered, dtype=np.float32), float(tolerance), int(min_size))
+
+
+def fit_segment_planes(disp: np.ndarray, labels: np.ndarray, p: PlaneFitParams):
+    """Planes per segment (see :func:`stereocli.match.kernels.segment.fit_planes`)."""
+    flat = labels.ravel()
+    order = np.argsort(flat, kind="stable")
+    counts = np.bincount(flat, minlength=int(flat.max()) + 1)
+    starts = np.concatenate(([0], np.cumsum(counts))).astype(np.int64)
+    planes, support, inliers = ks.fit_planes(
+        np.ascontiguousarray(disp, dtype=np.float32), labels, order.astype(np.int64), starts,
+        0 if p.method == "ransac" else 1, p.iterations, float(p.inlier), p.min_points, p.seed,
+        float(p.slope_bin),
+    )
+    return planes, support, inliers, counts
+
+
+@register("refinement", "plane_fit", PlaneFitParams)
+def plane_fit(state: MatchState, p: PlaneFitParams) -> None:
+    """Segment-based outlier replacement: fit d = a·x + b·y + c per colour segment.
+
+    The left image is segmented (OpenCV mean-shift filtering + connected components of
+    similar colour); each segment's plane is fitted to its reliable pixels (the finite ones:
+    place this stage after ``lr_check``) by RANSAC (seeded) or by histogram voting on the
+    disparity gradients, then refined by least squares on the inliers. Invalid pixels
+    (occlusions, mismatches) of segments with a trustworthy plane are replaced by the plane;
+    ``replace: outliers`` also replaces valid pixels far from it, ``all`` every pixel (only
+    safe when segments never straddle two surfaces). Assumes segments are planar surfaces:
+    great on piecewise-planar scenes, can flatten curved or thin structures that share a
+    colour segment (the reason the default replaces only invalid pixels).
+    """
+    disp = np.ascontiguousarray(state.disparity, dtype=np.float32)
+    labels = segment_image(state.left, p.spatial_radius, p.colour_radius, p.tolerance, p.min_size)
+    planes, support, inliers, counts = fit_segment_planes(disp, labels, p)
+    use = (support >= np.maximum(p.min_points, p.min_reliable * counts)) & (inliers >= p.min_inliers * np.maximum(support, 1)) & (inliers > 0)
+    lo, hi = float(state.min_disp), float(state.min_disp + state.ndisp - 1)
+    outlier = float(p.outlier) if p.replace != "invalid" else np.inf
+    state.disparity = ks.replace_by_planes(disp, labels, planes, use, outlier, p.replace == "all", lo, hi)

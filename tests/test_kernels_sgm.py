@@ -1,0 +1,108 @@
+"""The compiled SGM kernels against a tiny pure-numpy reference of Hirschmüller 2008 eq. 13."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from stereocli.match.kernels import sgm as ks
+
+
+def _penalty(i0: float, i1: float, p1: int, p2: int, gamma: float) -> int:
+    if gamma <= 0:
+        return p2
+    return max(int(p2 * gamma / (gamma + abs(i0 - i1))), p1)
+
+
+def reference_sgm(cq: np.ndarray, guide: np.ndarray, paths: int, p1: int, p2: int, gamma: float) -> np.ndarray:
+    """Sum over directions r of L_r(p, d) = C(p, d) + min(L_r(p−r, d), L_r(p−r, d±1) + P1,
+    min_k L_r(p−r, k) + P2) − min_k L_r(p−r, k); paths start where p − r leaves the image."""
+    h, w, nd = cq.shape
+    down = [tuple(r) for r in ks.DOWN_DIRECTIONS[paths]]
+    offsets = [(0, 1), (0, -1)] + down + [(-dy, -dx) for dy, dx in down]
+    total = np.zeros((h, w, nd), np.int64)
+    for ry, rx in offsets:
+        lr = np.zeros((h, w, nd), np.int64)
+        ys = range(h) if ry >= 0 else range(h - 1, -1, -1)
+        xs = list(range(w)) if rx >= 0 else list(range(w - 1, -1, -1))
+        for y in ys:
+            for x in xs:
+                c = cq[y, x].astype(np.int64)
+                yp, xp = y - ry, x - rx
+                if not (0 <= yp < h and 0 <= xp < w):
+                    lr[y, x] = c
+                    continue
+                prev = lr[yp, xp]
+                m = prev.min()
+                pen2 = _penalty(float(guide[y, x]), float(guide[yp, xp]), p1, p2, gamma)
+                up = np.concatenate([prev[1:], [10**9]])
+                dn = np.concatenate([[10**9], prev[:-1]])
+                lr[y, x] = c + np.minimum.reduce([prev, up + p1, dn + p1, np.full(nd, m + pen2)]) - m
+        total += lr
+    return total
+
+
+@pytest.mark.parametrize("paths", [2, 4, 8, 16])
+@pytest.mark.parametrize("gamma", [0.0, 4.0])
+def test_sgm_kernel_equals_reference(paths, gamma):
+    rng = np.random.default_rng(paths)
+    cq = rng.integers(0, 40, (12, 16, 5)).astype(np.uint8)
+    guide = rng.integers(0, 255, (12, 16)).astype(np.float32)
+    s, disp, right = ks.sgm_aggregate(cq, guide, paths, 3, 20, gamma, 0, True)
+    ref = reference_sgm(cq, guide, paths, 3, 20, gamma)
+    assert s.dtype == np.uint16
+    np.testing.assert_array_equal(s.astype(np.int64), ref)
+    # WTA restricted to in-image hypotheses (x - d >= 0), ties to the smaller disparity.
+    for x in range(16):
+        k1 = min(4, x)
+        np.testing.assert_array_equal(disp[:, x], np.argmin(ref[:, x, : k1 + 1], axis=1))
+
+
+def test_sgm_uint16_costs_and_negative_min_disp():
+    rng = np.random.default_rng(5)
+    cq = rng.integers(0, 600, (6, 9, 4)).astype(np.uint16)
+    guide = np.zeros((6, 9), np.float32)
+    s, disp, _ = ks.sgm_aggregate(cq, guide, 8, 10, 90, 0.0, -2)
+    np.testing.assert_array_equal(s.astype(np.int64), reference_sgm(cq, guide, 8, 10, 90, 0.0))
+    # min_disp = -2: hypotheses k = 0..3 are d = -2..1; at x = 8 (last column) d = -2 would
+    # land at x_r = 10 outside the image, so only k >= 1 compete there.
+    assert np.all(disp[:, 8] >= -1)
+    assert np.all(np.isfinite(disp))
+
+
+def test_combine_wta_right_view_matches_reference():
+    from stereocli.match.kernels.volume import wta_right
+
+    rng = np.random.default_rng(2)
+    for min_disp in (0, -3, 4):
+        f = rng.integers(0, 50, (5, 14, 6)).astype(np.uint16)
+        b = rng.integers(0, 50, (5, 14, 6)).astype(np.uint16)
+        total = f + b
+        _, right = ks.combine_wta(f, b, min_disp, True)
+        np.testing.assert_array_equal(f, total)  # fwd now holds the sum
+        np.testing.assert_array_equal(right, wta_right(total, min_disp, 65535.0))
+
+
+def test_quantize_rounds_and_caps():
+    cost = np.array([[[0.0, 0.49, 0.51, 10.0, 99.0]]], np.float32)
+    out = np.empty(cost.shape, np.uint8)
+    ks.quantize(cost, 2.0, 40, out)
+    np.testing.assert_array_equal(out[0, 0], [0, 1, 1, 20, 40])
+
+
+def test_sgm_deterministic_across_thread_counts():
+    import numba
+
+    rng = np.random.default_rng(9)
+    cq = rng.integers(0, 255, (40, 70, 23)).astype(np.uint8)
+    guide = rng.random((40, 70)).astype(np.float32) * 255
+    old = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        a = ks.sgm_aggregate(cq, guide, 8, 20, 200, 16.0, 0, True)
+        numba.set_num_threads(min(2, numba.config.NUMBA_NUM_THREADS))
+        b = ks.sgm_aggregate(cq, guide, 8, 20, 200, 16.0, 0, True)
+    finally:
+        numba.set_num_threads(old)
+    for x, y in zip(a, b):
+        np.testing.assert_array_equal(x, y)
