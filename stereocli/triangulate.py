@@ -270,6 +270,20 @@ def find_disparity(folder: Path) -> Path | None:
     return others[0] if others else None
 
 
+def _match_inputs(folder: Path) -> dict:
+    """The inputs ``stereocli match`` recorded in ``params.json`` beside its outputs (calib, left)."""
+    params = folder / "params.json"
+    if not params.is_file():
+        return {}
+    try:
+        import json
+
+        recorded = json.loads(params.read_text()).get("inputs", {})
+    except (OSError, ValueError):
+        return {}
+    return {k: v for k, v in recorded.items() if isinstance(v, str) and Path(v).is_file()}
+
+
 def plan_items(inputs: list[str] | tuple[str, ...], output: str, *, calib: str | None = None,
                image: str | None = None, scenes: str | None = None, confidence: str | None = None,
                npy: bool = False, depth_format: str | None = None, depth_png16: bool = False,
@@ -320,12 +334,13 @@ def plan_items(inputs: list[str] | tuple[str, ...], output: str, *, calib: str |
                     return str(folder / fname)
             return None
 
-        cal = calib or beside("calib.txt")
+        recorded = _match_inputs(disp.parent)
+        cal = calib or beside("calib.txt") or recorded.get("calib")
         if cal is None:
             problems.append(f"{disp}: no calibration (give --calib, or put calib.txt beside it or in --scenes/{name}/)")
             continue
         inputs_ = {"disparity": str(disp), "calibration": str(cal)}
-        img = image or beside("im0.png")
+        img = image or beside("im0.png") or recorded.get("left")
         if img:
             inputs_["image"] = str(img)
         conf = confidence or (beside("conf0.pfm") if not single else None)
