@@ -42,10 +42,12 @@ def _size(text: str | None) -> tuple[int, int] | None:
 @options.skip_existing
 @options.dry_run
 @options.jobs
+@options.scheduler
+@options.retries
 @options.verbose
 @click.pass_context
 def rectify_cmd(ctx, inputs, calib_path, outdir, alpha, size_text, interp, ndisp, min_depth, check, overwrite,
-                skip_existing, dry_run, jobs):
+                skip_existing, dry_run, jobs, scheduler, retries):
     """Rectify stereo pairs so that epipolar lines are image rows.
 
     INPUT is a pair of image files, a folder with left/ + right/ subfolders, a folder of
@@ -75,7 +77,8 @@ def rectify_cmd(ctx, inputs, calib_path, outdir, alpha, size_text, interp, ndisp
     for problem in problems:
         click.echo(f"Warning: {problem}", err=True)
     result = run_batch(items, rectify_item, jobs=jobs, overwrite=overwrite, skip_existing=skip_existing,
-                       desc="rectify", verbose_errors=verbosity >= 2)
+                       desc="rectify", verbose_errors=verbosity >= 2,
+                       scheduler=scheduler, retries=retries)
     record = RunRecord("rectify", argv(), {"calibration": str(calib_path), "alpha": alpha,
                                            "size": list(size) if size else None, "interp": interp})
     code = finish_batch(result, record, Path(outdir) / "run.json", verbosity, unpaired_failures(problems))

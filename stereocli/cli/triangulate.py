@@ -42,11 +42,13 @@ from ..errors import ConfigError as usage_error  # one-line message, exit 2
 @options.skip_existing
 @options.dry_run
 @options.jobs
+@options.scheduler
+@options.retries
 @options.verbose
 @click.pass_context
 def triangulate_cmd(ctx, inputs, output, calib_path, image, scenes, confidence, scale, units, use_q, min_depth,
                     max_depth, stride, ascii_ply, normals, no_color, npy, depth_format, depth_png16, summary, fmt,
-                    overwrite, skip_existing, dry_run, jobs):
+                    overwrite, skip_existing, dry_run, jobs, scheduler, retries):
     """Turn disparity maps into depth maps and coloured point clouds.
 
     Z = f·B / (d + doffs), X = Z·(x − cx)/f, Y = Z·(y − cy)/f in the rectified left camera
@@ -81,7 +83,8 @@ def triangulate_cmd(ctx, inputs, output, calib_path, image, scenes, confidence, 
     for problem in problems:
         click.echo(f"Warning: {problem}", err=True)
     result = run_batch(items, triangulate_item, jobs=jobs, overwrite=overwrite, skip_existing=skip_existing,
-                       desc="triangulate", verbose_errors=verbosity >= 2)
+                       desc="triangulate", verbose_errors=verbosity >= 2,
+                       scheduler=scheduler, retries=retries)
     out = Path(output)
     single = out.suffix.lower() in (".ply", ".npy")
     record = RunRecord("triangulate", argv(), opts)
