@@ -23,7 +23,6 @@ import copy
 import dataclasses
 import difflib
 from dataclasses import dataclass, field
-from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -100,13 +99,10 @@ def _plain(obj: Any) -> Any:
 
 
 def preset_dir() -> Path:
-    """Folder holding the bundled presets (installed package data, else the repo's configs/)."""
-    try:
-        installed = Path(str(resources.files("stereocli.presets")))
-        if (installed / "default.yaml").is_file():
-            return installed
-    except (ModuleNotFoundError, TypeError):
-        pass
+    """Folder holding the bundled presets: installed package data, else the checkout's configs/."""
+    installed = Path(__file__).resolve().parent / "presets"
+    if (installed / "default.yaml").is_file():
+        return installed
     return Path(__file__).resolve().parents[1] / "configs"
 
 
