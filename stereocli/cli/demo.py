@@ -53,7 +53,7 @@ def demo_cmd(ctx, outdir, samples_dir, config_files):
     square = _square_size(truth)
     config_args = [a for c in config_files for a in ("-c", c)]
     steps = [
-        ["calibrate", samples / "rig", "-o", out / "calib.yml", "--pattern", "9x6", "--square", f"{square:g}",
+        ["calibrate", samples / "rig", "-o", out / "calib.yml", "--pattern", "9x6", "--square", f"{square:g}m",  # the rendered rig is in metres
          "--overwrite"],
         ["rectify", samples / "raw" / "scene1", "--calib", out / "calib.yml", "-o", out / "rectified", "--overwrite"],
         ["match", samples / "scenes", out / "rectified", "-o", out / "disparity", "--overwrite", "--viz", *config_args],
