@@ -123,6 +123,14 @@ def sd_cost(state: MatchState, p: SDParams) -> None:
 # --- window costs by running sums -----------------------------------------------------------
 
 
+def _windowed_truncated_ad(state: MatchState, p) -> None:
+    """Window mean of per-pixel |L − R| truncated at ``p.truncate`` (shared by sad and stad)."""
+    state.cost_max = float(p.truncate)
+    state.cost = kl.window_cost_volume(_channels(state.left), _channels(state.right), state.min_disp,
+                                       state.ndisp, p.window[0] // 2, p.window[1] // 2, kl.MODE_AD,
+                                       float(p.truncate), state.cost_max, _bands())
+
+
 @dataclass(frozen=True)
 class WindowADParams:
     window: tuple[int, int] = param((9, 9), "window (height, width), odd; larger = smoother and more reliable in weak texture, but fatter at depth edges", unit="px", low=1, high=101)
@@ -142,10 +150,7 @@ def sad_cost(state: MatchState, p: WindowADParams) -> None:
     classic fixed-window trade-off: bigger windows are more reliable in weak texture and
     fatten foreground objects at depth edges (Scharstein & Szeliski 2002, §5).
     """
-    state.cost_max = float(p.truncate)
-    state.cost = kl.window_cost_volume(_channels(state.left), _channels(state.right), state.min_disp,
-                                       state.ndisp, p.window[0] // 2, p.window[1] // 2, kl.MODE_AD,
-                                       float(p.truncate), state.cost_max, _bands())
+    _windowed_truncated_ad(state, p)
 
 
 @dataclass(frozen=True)
@@ -164,10 +169,7 @@ def stad_cost(state: MatchState, p: STADParams) -> None:
     Truncating each pixel's difference limits the damage done by the part of the window that
     lies on another surface near depth edges (Scharstein & Szeliski 2002, §3.1).
     """
-    state.cost_max = float(p.truncate)
-    state.cost = kl.window_cost_volume(_channels(state.left), _channels(state.right), state.min_disp,
-                                       state.ndisp, p.window[0] // 2, p.window[1] // 2, kl.MODE_AD,
-                                       float(p.truncate), state.cost_max, _bands())
+    _windowed_truncated_ad(state, p)
 
 
 @dataclass(frozen=True)

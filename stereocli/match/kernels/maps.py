@@ -62,32 +62,3 @@ def fill_background(disp: np.ndarray) -> np.ndarray:
                 else:
                     out[y, x] = nxt
     return out
-
-
-@njit(cache=True, parallel=True)
-def median_finite(disp: np.ndarray, radius: int) -> np.ndarray:
-    """Median over the finite values of a (2r+1)² window; invalid centres stay invalid.
-
-    Ignoring +inf neighbours keeps holes from eating into valid regions.
-    """
-    h, w = disp.shape
-    out = disp.copy()
-    size = (2 * radius + 1) ** 2
-    for y in prange(h):
-        buf = np.empty(size, np.float32)
-        for x in range(w):
-            if not np.isfinite(disp[y, x]):
-                continue
-            n = 0
-            for yy in range(max(0, y - radius), min(h, y + radius + 1)):
-                for xx in range(max(0, x - radius), min(w, x + radius + 1)):
-                    v = disp[yy, xx]
-                    if np.isfinite(v):
-                        buf[n] = v
-                        n += 1
-            s = np.sort(buf[:n])
-            if n % 2 == 1:
-                out[y, x] = s[n // 2]
-            else:
-                out[y, x] = np.float32(0.5 * (s[n // 2 - 1] + s[n // 2]))
-    return out

@@ -173,7 +173,7 @@ def interpolate_holes(disp, label, max_dist: int) -> np.ndarray:
 @njit(cache=True, parallel=True)
 def median_valid(disp: np.ndarray, radius: int) -> np.ndarray:
     """Median over the finite values of a (2r+1)² window (insertion sort in a fixed buffer);
-    invalid centres stay invalid. Same result as ``kernels.maps.median_finite``, faster."""
+    invalid centres stay invalid (reference: ``tests/test_refine_sgm.py``)."""
     h, w = disp.shape
     out = disp.copy()
     size = (2 * radius + 1) ** 2
