@@ -9,8 +9,12 @@ the colour pair, except rows marked "grey" (the grey pair StereoBM also gets), o
 to warm up (numba compilation, caches), then the best of ``--repeat`` runs is kept.
 MDE/s = W·H·D / seconds / 10⁶.
 
+SAD/STAD + WTA pipelines (and the realtime preset) run the fused cost + WTA kernel, which
+never stores the cost volume (:func:`stereocli.match.pipeline.fused_cost_wta`); the rows
+marked "volume path" run the same pipeline with the fusion switched off, for comparison.
+
     python benchmarks/speed_local.py --threads 2
-    python benchmarks/speed_local.py --only sad,realtime --repeat 10
+    python benchmarks/speed_local.py --threads 2 --only sad,realtime --repeat 10
 """
 
 from __future__ import annotations
@@ -28,6 +32,7 @@ sys.path.insert(0, str(REPO))
 
 from stereocli.config import build_config, validate  # noqa: E402
 from stereocli.io.images import read_image  # noqa: E402
+from stereocli.match import pipeline  # noqa: E402
 from stereocli.match.pipeline import match_pair  # noqa: E402
 
 DATA = REPO.parent / "shared" / "data"
@@ -49,10 +54,15 @@ AGGREGATIONS = {
 PREPROCESS = ["log", "mean_removal", "bilateral_subtraction", "xsobel", "histogram_matching"]
 
 
+VOLUME_PATH = "volume path (fusion off)"
+
+
 def rows() -> dict[str, object]:
     out: dict[str, object] = {}
     out["grey: realtime preset (mean removal, SAD 9×9, WTA, SMP, sub-pixel, texture)"] = "realtime"
     out["grey: SAD 9×9 (running sums) + WTA"] = {"cost": {"name": "sad", "window": [9, 9]}}
+    out[f"grey: realtime preset, {VOLUME_PATH}"] = "realtime"
+    out[f"grey: SAD 9×9 + WTA, {VOLUME_PATH}"] = {"cost": {"name": "sad", "window": [9, 9]}}
     out["grey: AD + box 9×9 + WTA"] = {"cost": {"name": "ad"}, "aggregation": [{"name": "box", "window": [9, 9]}]}
     out["realtime preset (colour)"] = "realtime"
     out["SAD 9×9 (running sums) + WTA"] = {"cost": {"name": "sad", "window": [9, 9]}}
@@ -92,7 +102,7 @@ def main(argv=None) -> int:
     ap.add_argument("--ndisp", type=int, default=64)
     ap.add_argument("--threads", type=int, default=0, help="numba and OpenCV threads (0 = all cores)")
     ap.add_argument("--repeat", type=int, default=3)
-    ap.add_argument("--only", default="", help="comma-separated substrings of row labels")
+    ap.add_argument("--only", default="", help="comma-separated substrings of row labels (case-insensitive)")
     args = ap.parse_args(argv)
     folder = DATA / args.scene
     left, right = read_image(folder / "im2.png"), read_image(folder / "im6.png")
@@ -111,13 +121,15 @@ def main(argv=None) -> int:
     print("|---|---|---|---|")
     print(f"| OpenCV StereoBM (block 9, grey, its default post-filters) | {t_bm:.4f} | {bm_rate:.0f} | 1.00 |", flush=True)
     for label, spec in rows().items():
-        if args.only and not any(s.strip() in label for s in args.only.split(",")):
+        if args.only and not any(s.strip().lower() in label.lower() for s in args.only.split(",")):
             continue
         config = make_config(spec, args.threads)
         slow = any(a in label for a in ("adaptive_weights", "segment_support", "locally_consistent",
                                         "ordinal", "variable_window", "cross"))
         a, b = (gl, gr) if label.startswith("grey:") else (left, right)
+        pipeline.FUSED = VOLUME_PATH not in label
         t = best_time(lambda: match_pair(a, b, config, ndisp=args.ndisp), 1 if slow else args.repeat)
+        pipeline.FUSED = True
         print(f"| {label} | {t:.4f} | {mde / t:.0f} | {mde / t / bm_rate:.2f} |", flush=True)
     return 0
 

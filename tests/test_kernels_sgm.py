@@ -70,17 +70,21 @@ def test_sgm_uint16_costs_and_negative_min_disp():
     assert np.all(np.isfinite(disp))
 
 
-def test_combine_wta_right_view_matches_reference():
+@pytest.mark.parametrize("min_disp", [0, -3, 4])
+@pytest.mark.parametrize("height", [1, 5, 8])
+def test_sgm_right_view_and_cost_multiplier_match_reference(min_disp, height):
+    # The right-view WTA is taken while the second phase finishes each row: it must equal
+    # the volume-level WTA (stereocli.match.kernels.volume.wta_right) on the final sums, for
+    # odd/even/single-row heights (the two phases split the rows at H // 2).
     from stereocli.match.kernels.volume import wta_right
 
-    rng = np.random.default_rng(2)
-    for min_disp in (0, -3, 4):
-        f = rng.integers(0, 50, (5, 14, 6)).astype(np.uint16)
-        b = rng.integers(0, 50, (5, 14, 6)).astype(np.uint16)
-        total = f + b
-        _, right = ks.combine_wta(f, b, min_disp, True)
-        np.testing.assert_array_equal(f, total)  # fwd now holds the sum
-        np.testing.assert_array_equal(right, wta_right(total, min_disp, 65535.0))
+    rng = np.random.default_rng(height)
+    cq = rng.integers(0, 20, (height, 14, 6)).astype(np.uint8)
+    guide = rng.integers(0, 255, (height, 14)).astype(np.float32)
+    s, disp, right = ks.sgm_aggregate(cq, guide, 8, 6, 40, 4.0, min_disp, True, cost_mul=3)
+    ref = reference_sgm(cq.astype(np.int64) * 3, guide, 8, 6, 40, 4.0)
+    np.testing.assert_array_equal(s.astype(np.int64), ref)
+    np.testing.assert_array_equal(right, wta_right(s, min_disp, 65535.0))
 
 
 def test_quantize_rounds_and_caps():

@@ -68,6 +68,9 @@ def test_confidence_range_and_ordering():
     s, p = stage("confidence")
     st = make_state(disp, cost, right)
     s.func(st, p)
+    assert st.confidence is None  # nobody asked for the map: the stage is skipped
+    st.want_confidence = True
+    s.func(st, p)
     c = st.confidence
     assert c.dtype == np.float32 and c.shape == (1, 10)
     assert c[0, 8] == pytest.approx(1.0) and 0 <= c[0, 9] < 0.5

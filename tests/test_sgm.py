@@ -101,7 +101,8 @@ def test_keep_invalid_skips_filling_stages():
 def test_confidence_and_right_view_outputs():
     gt = np.full((40, 72), 5.0, np.float32)
     left, right = warp_pair(gt, seed=6)
-    res = run(left, right, [], ndisp=16, want_right=True)
+    assert run(left, right, [], ndisp=16).confidence is None  # not requested: not computed
+    res = run(left, right, [], ndisp=16, want_right=True, want_confidence=True)
     assert res.confidence is not None and res.confidence.dtype == np.float32
     assert 0.0 <= res.confidence.min() and res.confidence.max() <= 1.0
     assert np.median(res.confidence[:, 20:]) > 0.5

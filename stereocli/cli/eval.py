@@ -47,12 +47,15 @@ def _parse_thresholds(_ctx: click.Context, _param: click.Parameter, value: str |
 @click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=str), default=None,
               help="Also write the report to this file (same format).")
 @options.overwrite
+@options.jobs
+@options.scheduler
+@options.retries
 @options.verbose
 @click.pass_context
 def eval_cmd(ctx: click.Context, results: str, ground_truth: str, fmt: str, dataset: str | None,
              thresholds: tuple[float, ...] | None, resolution: str, threshold_units: str, same_resolution: bool,
              ndisp: float | None, gt_scale: float | None, error_maps: str | None, html_dir: str | None,
-             output: str | None, overwrite: bool) -> None:
+             output: str | None, overwrite: bool, jobs: int, scheduler: str | None, retries: int) -> None:
     """Score disparity maps against ground truth with the official benchmark rules.
 
     RESULTS is a disparity file (PFM, 16-bit PNG, npy) or a folder of <scene>/disp0*.pfm
@@ -60,8 +63,17 @@ def eval_cmd(ctx: click.Context, results: str, ground_truth: str, fmt: str, data
     folder of scene folders (Middlebury 2014 / MiddEval3, Middlebury 2001/2003) or a KITTI 2015
     root (disp_noc_0/, disp_occ_0/). Scenes are matched by name; missing results are failures.
 
+    Scenes are scored in-process, or in parallel with --jobs N (process pool) or --scheduler
+    (Dask); the report is the same. --retries re-runs scenes whose scoring crashed.
+
     Exit codes: 0 all scored, 3 some scenes (or regions) failed, 1 nothing could be scored or a
     single pair failed, 2 bad options.
+
+    \b
+    Examples:
+      stereocli eval out samples/scenes
+      stereocli eval out ../data/trainingQ --format json --jobs 2
+      stereocli eval out gt/ --scheduler tcp://127.0.0.1:8786 --retries 1
     """
     from ..errors import DataError, OutputExistsError
     from ..evaluate import EvalOptions, evaluate, format_table
@@ -83,7 +95,8 @@ def eval_cmd(ctx: click.Context, results: str, ground_truth: str, fmt: str, data
 
         if Path(output).exists():
             raise OutputExistsError(f"{output} already exists; use --overwrite to replace")
-    report = evaluate(results, ground_truth, options=opts)
+    report = evaluate(results, ground_truth, options=opts, jobs=jobs, scheduler=scheduler, retries=retries,
+                      verbose_errors=verbosity >= 2)
     text = format_table(report, fmt)
     click.echo(text, nl=False)
     if output:

@@ -5,6 +5,12 @@
 are failures, never silently skipped); ``evaluate`` accepts whatever the command line got (a
 file or a folder on either side). All return plain dataclasses whose ``as_dict()`` is the JSON
 report.
+
+Folder mode scores its scenes as a batch (:func:`stereocli.batch.run_batch`) with the
+executors of every other subcommand: in-process (default), a process pool (``jobs > 1``) or
+Dask (``scheduler``). Only paths travel to the workers (:func:`eval_item`); each returns its
+scene's :class:`SceneResult`, and the report is assembled here in GT-scene order, so it is the
+same whichever executor ran the scenes.
 """
 
 from __future__ import annotations
@@ -16,6 +22,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from ..batch import WorkItem, run_batch
 from ..errors import ConfigError, DataError, StereoError
 from . import datasets as ds
 from .metrics import (
@@ -311,27 +318,66 @@ def evaluate_pair(
     return result
 
 
+def eval_item(item: WorkItem) -> dict[str, Any]:
+    """Batch item function: load one GT scene and score its result (top level: picklable by name).
+
+    ``item.inputs``: ``gt`` (scene folder or KITTI root), ``result`` (disparity file), optional
+    ``time`` (``time.txt``); ``item.options``: ``kind`` (GT layout) and ``eval_options``
+    (:class:`EvalOptions`). Returns ``{"scene": SceneResult | None, "resolution": str | None,
+    "failure": str | None, "config_error": str | None}``: bad data (:class:`DataError`) is a
+    *scored outcome* (``failure``, the one-line message), not a failed item, so ``retries`` only
+    re-run items that crashed (unexpected exception, dead worker, task lost on the cluster).
+    The :class:`SceneResult` holds numbers only, plus its arrays when ``keep_arrays`` is set.
+    """
+    options: EvalOptions = item.options["eval_options"]
+    entry = ds.GTEntry(item.name, item.options["kind"], Path(item.inputs["gt"]))
+    time_path = item.inputs.get("time")
+    out: dict[str, Any] = {"scene": None, "resolution": None, "failure": None, "config_error": None}
+    try:
+        scene = ds.load_entry(entry, gt_scale=options.gt_scale, resolution=options.scene_resolution())
+        out["resolution"] = scene.resolution
+        out["scene"] = evaluate_pair(item.inputs["result"], scene, options=options,
+                                     time=ds.read_time(Path(time_path) if time_path else None), name=entry.name)
+    except ConfigError as exc:
+        out["config_error"] = str(exc)
+    except StereoError as exc:
+        out["failure"] = str(exc)
+    return out
+
+
 def evaluate_folder(
     results_dir: str | os.PathLike,
     gt_dir: str | os.PathLike,
     *,
     options: EvalOptions | None = None,
     dataset: str | None = None,
+    jobs: int = 1,
+    scheduler: str | None = None,
+    retries: int = 0,
+    executor: str | None = None,
+    progress: bool | None = None,
+    verbose_errors: bool = False,
 ) -> EvalReport:
     """Score every GT scene under ``gt_dir`` with the result of the same name in ``results_dir``.
 
     GT scenes without a result are failures ("missing result"); results without GT are noted
     (not scored). A scene that fails to load or score is a failure with a one-line message.
+
+    ``jobs``, ``scheduler``, ``retries``, ``executor``, ``progress``: how the scenes run, as in
+    :func:`stereocli.batch.run_batch` (in-process by default; ``jobs > 1`` a process pool;
+    ``scheduler`` = ``tcp://host:port`` or ``local`` Dask). The report does not depend on them.
+    A scene whose scoring crashed (not bad data: that is reported at once) is run again up to
+    ``retries`` times, then reported as a failure.
     """
     options = options or EvalOptions(dataset=dataset)
     if dataset is not None and options.dataset is None:
         options.dataset = dataset
     entries = ds.find_gt_scenes(Path(gt_dir), dataset=options.dataset)
     results = ds.find_results(Path(results_dir))
-    scenes: list[SceneResult] = []
     failures: list[dict[str, str]] = []
     kinds: set[str] = set()
-    resolutions: set[str] = set()
+    # One slot per GT scene, in order: a failure found while pairing, or a work item to score.
+    plan: list[dict[str, str] | WorkItem] = []
     # Exact names claim their results first; a case-insensitive match (Tsukuba vs tsukuba) only
     # takes a result no other scene claims exactly, so v2 "teddy" never scores MiddEval3 "Teddy".
     exact = {e.name for e in entries if e.name in results}
@@ -343,26 +389,42 @@ def evaluate_folder(
             spare = {k: v for k, v in results.items() if k not in exact and k not in used}
             res = ds.match_name(entry.name, spare)
         if res is None:
-            failures.append({"name": entry.name, "message": f"missing result (no {entry.name}/disp0*.pfm or "
-                                                            f"{entry.name}.pfm in {results_dir})"})
+            plan.append({"name": entry.name, "message": f"missing result (no {entry.name}/disp0*.pfm or "
+                                                        f"{entry.name}.pfm in {results_dir})"})
             continue
         used.add(res.name)
         if res.path is None:
-            failures.append({"name": entry.name, "message": res.problem or "no result"})
+            plan.append({"name": entry.name, "message": res.problem or "no result"})
             continue
-        try:
-            scene = ds.load_entry(entry, gt_scale=options.gt_scale, resolution=options.scene_resolution())
-            resolutions.add(scene.resolution)
-            result = evaluate_pair(res.path, scene, options=options, time=ds.read_time(res.time_path),
-                                   name=entry.name)
-        except ConfigError:
-            raise
-        except StereoError as exc:
-            failures.append({"name": entry.name, "message": str(exc)})
+        inputs = {"gt": str(entry.path), "result": str(res.path)}
+        if res.time_path is not None:
+            inputs["time"] = str(res.time_path)
+        plan.append(WorkItem(entry.name, inputs, {}, {"kind": entry.kind, "eval_options": options}))
+    items = [p for p in plan if isinstance(p, WorkItem)]
+    batch = run_batch(items, eval_item, jobs=jobs, scheduler=scheduler, retries=retries, executor=executor,
+                      progress=progress, desc="eval", verbose_errors=verbose_errors)
+    outcomes = iter(batch.results)
+    scenes: list[SceneResult] = []
+    resolutions: set[str] = set()
+    for slot in plan:
+        if not isinstance(slot, WorkItem):
+            failures.append(slot)
             continue
+        done = next(outcomes)
+        if done.status != "ok":  # crashed on every attempt (bug, dead worker, lost task)
+            failures.append({"name": slot.name, "message": done.message or "failed"})
+            continue
+        if done.details.get("config_error"):
+            raise ConfigError(done.details["config_error"])
+        if done.details.get("resolution"):
+            resolutions.add(done.details["resolution"])
+        if done.details.get("failure") is not None:
+            failures.append({"name": slot.name, "message": done.details["failure"]})
+            continue
+        result: SceneResult = done.details["scene"]
         scenes.append(result)
         for err in result.errors:
-            failures.append({"name": entry.name, "message": err, "partial": "true"})
+            failures.append({"name": slot.name, "message": err, "partial": "true"})
     notes = []
     unused = sorted(set(results) - used)
     if unused:
@@ -386,13 +448,26 @@ def evaluate(
     ground_truth: str | os.PathLike,
     *,
     options: EvalOptions | None = None,
+    jobs: int = 1,
+    scheduler: str | None = None,
+    retries: int = 0,
+    executor: str | None = None,
+    progress: bool | None = None,
+    verbose_errors: bool = False,
 ) -> EvalReport:
     """What ``stereocli eval RESULTS GROUND_TRUTH`` does: pair mode or folder mode.
 
     Pair mode (RESULTS is a file, or a folder holding ``disp0*.pfm`` itself): errors raise
-    :class:`DataError`. Folder mode: per-scene failures are collected in the report.
+    :class:`DataError`; the one pair is scored in-process. Folder mode: per-scene failures are
+    collected in the report; the scenes run on the executor chosen by ``jobs``/``scheduler``/
+    ``executor`` (see :func:`evaluate_folder`). A bad ``scheduler`` or a missing Dask raises
+    :class:`ConfigError` before anything is read, in both modes.
     """
     options = options or EvalOptions()
+    if scheduler is not None or executor == "dask":
+        from ..distributed import check_scheduler
+
+        check_scheduler(scheduler)
     results, ground_truth = Path(results), Path(ground_truth)
     if not results.exists():
         raise DataError(f"{results}: no such file or folder")
@@ -412,7 +487,9 @@ def evaluate(
     if pair_file is None:
         if ground_truth.is_file():
             raise ConfigError(f"{results} is a folder but {ground_truth} is a file; give a GT folder")
-        return evaluate_folder(results, ground_truth, options=options)
+        return evaluate_folder(results, ground_truth, options=options, jobs=jobs, scheduler=scheduler,
+                               retries=retries, executor=executor, progress=progress,
+                               verbose_errors=verbose_errors)
     # Pair mode.
     if ground_truth.is_file():
         scene = ds.load_gt_file(ground_truth, dataset=options.dataset, gt_scale=options.gt_scale,
@@ -440,4 +517,4 @@ def evaluate(
 
 
 __all__ = ["EvalOptions", "SceneResult", "EvalReport", "evaluate", "evaluate_pair", "evaluate_folder",
-           "weighted_average", "rules_text", "threshold_key"]
+           "eval_item", "weighted_average", "rules_text", "threshold_key"]

@@ -27,7 +27,8 @@ from ..errors import ConfigError
 from ..registry import param, register
 from .kernels import cost as kc
 from .kernels import costs_local as kl
-from .state import MatchState
+from .kernels.fused_sad import sad_wta as fused_sad_wta
+from .state import MatchState, WinnerCosts
 
 
 def _channels(image: np.ndarray) -> np.ndarray:
@@ -131,6 +132,27 @@ def _windowed_truncated_ad(state: MatchState, p) -> None:
                                        float(p.truncate), state.cost_max, _bands())
 
 
+def _windowed_truncated_ad_wta(state: MatchState, p, winner: bool) -> None:
+    """Fused ``sad``/``stad`` + ``wta``: the same disparities without the (H, W, D) volume.
+
+    Sets ``disparity`` bit-identical to running the cost stage, the right-valid masking and
+    ``wta`` (same float32 operations in the same order and bands,
+    :mod:`~stereocli.match.kernels.fused_sad`), and with ``winner`` also ``state.winner`` (the
+    costs at k − 1, k, k + 1 of each winner, for the volume refinements); ``cost`` stays None.
+    Called by the pipeline (:func:`stereocli.match.pipeline.fused_cost_wta`).
+    """
+    left = _channels(state.left)
+    mask = state.right_valid if state.right_valid is not None else np.zeros((0, 0), np.bool_)
+    state.cost_max = float(p.truncate)
+    disparity, costs = fused_sad_wta(left, _channels(state.right), mask, state.min_disp, state.ndisp,
+                                     p.window[0] // 2, p.window[1] // 2, float(p.truncate) * left.shape[2],
+                                     state.cost_max, _bands(), winner)
+    state.cost = None
+    state.disparity = disparity
+    # the refinements replace ``disparity``; the winner keeps the WTA map they started from
+    state.winner = WinnerCosts(disparity.copy(), costs) if winner else None
+
+
 @dataclass(frozen=True)
 class WindowADParams:
     window: tuple[int, int] = param((9, 9), "window (height, width), odd; larger = smoother and more reliable in weak texture, but fatter at depth edges", unit="px", low=1, high=101)
@@ -153,6 +175,9 @@ def sad_cost(state: MatchState, p: WindowADParams) -> None:
     _windowed_truncated_ad(state, p)
 
 
+sad_cost.fused_wta = _windowed_truncated_ad_wta
+
+
 @dataclass(frozen=True)
 class STADParams:
     window: tuple[int, int] = param((9, 9), "window (height, width), odd", unit="px", low=1, high=101)
@@ -170,6 +195,9 @@ def stad_cost(state: MatchState, p: STADParams) -> None:
     lies on another surface near depth edges (Scharstein & Szeliski 2002, §3.1).
     """
     _windowed_truncated_ad(state, p)
+
+
+stad_cost.fused_wta = _windowed_truncated_ad_wta
 
 
 @dataclass(frozen=True)
@@ -339,7 +367,8 @@ def census_cost(state: MatchState, p: CensusParams) -> None:
     left = kc.census_transform(np.ascontiguousarray(state.gray("left")), wh // 2, ww // 2)
     right = kc.census_transform(np.ascontiguousarray(state.gray("right")), wh // 2, ww // 2)
     state.cost_max = float(wh * ww - 1)
-    state.cost = kc.hamming_volume(left, right, state.min_disp, state.ndisp, state.cost_max)
+    dtype = np.uint8 if state.integer_cost_ok else np.float32
+    state.cost = kc.hamming_volume(left, right, state.min_disp, state.ndisp, state.cost_max, dtype)
 
 
 @dataclass(frozen=True)

@@ -10,6 +10,18 @@ The three phases are separate functions so a cluster can run one pair's strips o
 workers: :func:`prepare` (checks, preprocess, strip plan) → :func:`run_strip` per strip (pure:
 a cropped state in, the kept rows out) → :func:`finish` (stitch in plan order, map
 refinements). :func:`match_pair` is exactly these three in one process.
+
+Fused cost + WTA: a local pipeline ``cost → wta`` never needs the whole (H, W, D) volume, only
+each pixel's winner. When :func:`fused_cost_wta` finds that the cost stage offers a fused
+kernel (a ``fused_wta`` attribute on its function: ``sad``, ``stad``), there is no
+aggregation, the optimizer is ``wta``, no right-view disparity is wanted (``want_right``,
+e.g. ``lr_check``) and every volume refinement (``needs_cost``) offers an ``on_winner_costs``
+variant (``single_matching_phase``, ``subpixel``), the strip runs the fused kernel and those
+variants instead (timing key ``cost.<name>+optimizer.wta``). Otherwise, e.g. with
+``uniqueness`` or ``confidence`` in the list, it falls back to the volume path. Both paths
+give bit-identical maps (``tests/test_fused_sad.py``); set :data:`FUSED` to False to force the
+volume path. The memory estimate and strip plan ignore the fusion (they stay those of the
+volume path, so the plan does not depend on it).
 """
 
 from __future__ import annotations
@@ -26,6 +38,9 @@ from .kernels.cost import mask_invalid_right
 from .kernels.volume import wta_right
 from .refine import clear_invalid_left
 from .state import MatchState
+
+#: Use fused cost + WTA kernels when the pipeline allows it (False forces the volume path).
+FUSED = True
 
 GIB = 1024.0**3
 #: Interpreter, numpy/numba/OpenCV libraries and compiled kernels (measured RSS before matching).
@@ -140,6 +155,7 @@ def prepare(
     right_valid: np.ndarray | None = None,
     want_right: bool = False,
     keep_invalid: bool = False,
+    want_confidence: bool = False,
 ) -> PreparedPair:
     """Validate inputs, run the preprocess stages on the whole image and plan the row strips.
 
@@ -165,6 +181,7 @@ def prepare(
         left_valid=_as_valid(left_valid, shape, "left"),
         right_valid=_as_valid(right_valid, shape, "right"),
         want_right=want_right,
+        want_confidence=want_confidence,
         threads=config.runtime.threads,
     )
     for call in config.preprocess:
@@ -265,6 +282,7 @@ def match_pair(
     right_valid: np.ndarray | None = None,
     want_right: bool = False,
     keep_invalid: bool = False,
+    want_confidence: bool = False,
     strip_map: StripMap | None = None,
 ) -> MatchResult:
     """Compute the left disparity map of a rectified pair.
@@ -280,6 +298,8 @@ def match_pair(
         rectification borders are invalid); invalid left pixels come out +inf.
     want_right : also return the right-view disparity.
     keep_invalid : skip ``fill`` stages so holes stay +inf.
+    want_confidence : run the ``confidence`` stages (they are skipped otherwise, so a map
+        nobody asked for costs nothing).
     strip_map : runs the strips of a prepared pair and returns their results in plan order
         (default :func:`run_strips`, in this process); e.g. spread over Dask workers by
         :func:`stereocli.match.split.cluster_strip_map`. The output does not depend on it.
@@ -289,7 +309,8 @@ def match_pair(
     MatchResult with float32 disparity (+inf invalid) and per-stage timings in seconds.
     """
     prepared = prepare(left, right, config, min_disp=min_disp, ndisp=ndisp, left_valid=left_valid,
-                       right_valid=right_valid, want_right=want_right, keep_invalid=keep_invalid)
+                       right_valid=right_valid, want_right=want_right, keep_invalid=keep_invalid,
+                       want_confidence=want_confidence)
     results = (strip_map or run_strips)(prepared, config)
     return finish(prepared, results, config)
 
@@ -297,16 +318,48 @@ def match_pair(
 def _strip_state(state: MatchState, a: int, b: int) -> MatchState:
     if a == 0 and b == state.shape[0]:
         return MatchState(state.left, state.right, state.min_disp, state.ndisp, state.left_valid,
-                          state.right_valid, want_right=state.want_right, threads=state.threads,
-                          extras=state.extras)
+                          state.right_valid, want_right=state.want_right,
+                          want_confidence=state.want_confidence, threads=state.threads, extras=state.extras)
     crop = lambda m: None if m is None else np.ascontiguousarray(m[a:b])  # noqa: E731
     return MatchState(crop(state.left), crop(state.right), state.min_disp, state.ndisp,
                       crop(state.left_valid), crop(state.right_valid), want_right=state.want_right,
-                      row_offset=a, threads=state.threads, extras=dict(state.extras))
+                      want_confidence=state.want_confidence, row_offset=a, threads=state.threads,
+                      extras=dict(state.extras))
+
+
+def fused_cost_wta(config: PipelineConfig, volume_stages: list, want_right: bool) -> Callable | None:
+    """The cost stage's fused cost + WTA function if this strip may skip the volume, else None.
+
+    Conditions (module docstring): :data:`FUSED`, a ``fused_wta`` attribute on the cost stage,
+    no aggregation, the ``wta`` optimizer, no right-view disparity wanted, and an
+    ``on_winner_costs`` variant on every volume refinement in ``volume_stages``, each stage at
+    most once (the winner costs cover the hypotheses within 1 of the WTA winner: enough for one
+    sub-pixel fit and any number of claim checks, not for a second fit around a moved value).
+    """
+    fused = getattr(config.cost.stage.func, "fused_wta", None)
+    names = [c.stage.name for c in volume_stages]
+    if (not FUSED or fused is None or config.aggregation or config.optimizer.stage.name != "wta"
+            or want_right or len(set(names)) != len(names)
+            or any(not hasattr(c.stage.func, "on_winner_costs") for c in volume_stages)):
+        return None
+    return fused
 
 
 def _run_volume_stages(sub: MatchState, config: PipelineConfig, volume_stages, timings) -> None:
     call = config.cost
+    fused = fused_cost_wta(config, volume_stages, sub.want_right)
+    if fused is not None:
+        t0 = time.perf_counter()
+        fused(sub, call.params, bool(volume_stages))  # winner costs only if a refinement reads them
+        key = f"cost.{call.stage.name}+optimizer.wta"
+        timings[key] = timings.get(key, 0.0) + time.perf_counter() - t0
+        for c in volume_stages:
+            _timed(timings, f"refinement.{c.stage.name}", c.stage.func.on_winner_costs, sub, c.params)
+        sub.winner = None
+        return
+    # A cost stage may leave a uint8/uint16 volume when its consumer says it accepts one.
+    sub.integer_cost_ok = not config.aggregation and getattr(config.optimizer.stage.func,
+                                                             "accepts_integer_cost", False)
     _timed(timings, f"cost.{call.stage.name}", call.stage.func, sub, call.params)
     if sub.right_valid is not None:
         mask_invalid_right(sub.cost, sub.right_valid, sub.min_disp, np.float32(sub.cost_max))

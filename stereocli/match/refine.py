@@ -36,6 +36,18 @@ def subpixel(state: MatchState, p: SubpixelParams) -> None:
         state.disparity_right = subpixel_right(state.cost, state.disparity_right, state.min_disp, equi)
 
 
+def _subpixel_on_winner_costs(state: MatchState, p: SubpixelParams) -> None:
+    # Fused cost + WTA path (stereocli.match.pipeline): the same fit on the costs kept around
+    # each winner (no right view on that path).
+    from .optimize.wta import subpixel_on_winner
+
+    state.disparity = subpixel_on_winner(state.winner, state.disparity, state.min_disp, state.ndisp,
+                                         p.method == "equiangular")
+
+
+subpixel.on_winner_costs = _subpixel_on_winner_costs
+
+
 @dataclass(frozen=True)
 class LRCheckParams:
     max_diff: float = param(1.0, "largest accepted |d_left - d_right| at corresponding pixels", unit="px", low=0.0, high=100.0)
@@ -100,6 +112,8 @@ def confidence(state: MatchState, p: ConfidenceParams) -> None:
     c_second is the best hypothesis more than 1 px from the winner. Uses the right-view map when
     one exists (e.g. ``lr_check`` in the list); place it after ``subpixel``.
     """
+    if not state.want_confidence:
+        return  # nobody asked for the map (match --confidence / match_pair(want_confidence=True))
     right = state.disparity_right if state.disparity_right is not None else np.zeros((0, 0), np.float32)
     state.confidence = kr.confidence(state.cost, state.disparity, right, state.min_disp,
                                      float(p.lr_scale), float(p.margin_scale))

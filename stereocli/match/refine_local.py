@@ -13,45 +13,93 @@ import numpy as np
 from numba import njit, prange
 
 from ..registry import param, register
+from .optimize.wta import check_winner_coverage
 from .state import MatchState
 
 INF = np.float32(np.inf)
+
+
+@njit(cache=True, inline="always")
+def _resolve_row(disp, out, y, claims, min_disp, ndisp, owner, owner_cost):
+    # One left→right pass over row y; claims[x] is the cost of left x at round(disp[y, x]).
+    w = disp.shape[1]
+    for xr in range(w):
+        owner[xr] = -1
+    for x in range(w):
+        d = disp[y, x]
+        if not np.isfinite(d):
+            continue
+        di = int(np.floor(d + 0.5))
+        k = di - min_disp
+        xr = x - di
+        if xr < 0 or xr >= w or k < 0 or k >= ndisp:
+            out[y, x] = INF
+            continue
+        c = claims[x]
+        o = owner[xr]
+        if o < 0:
+            owner[xr] = x
+            owner_cost[xr] = c
+        elif c < owner_cost[xr]:
+            out[y, o] = INF  # the earlier claim loses: a collision exposes a wrong match
+            owner[xr] = x
+            owner_cost[xr] = c
+        else:
+            out[y, x] = INF
 
 
 @njit(cache=True, parallel=True)
 def single_matching_phase_kernel(disp: np.ndarray, cost: np.ndarray, min_disp: int) -> np.ndarray:
     """One left→right pass per row; when two left pixels claim the same right pixel, the one
     with the lower cost keeps it and the other becomes +inf (Di Stefano, Marchionni &
-    Mattoccia, IVC 2004, §3). ``disp`` holds integer-valued float32 disparities (+inf invalid).
+    Mattoccia, IVC 2004, §3). ``disp`` holds integer-valued float32 disparities (+inf invalid);
+    ``cost`` is the (H, W, D) volume (float32 or uint16).
     """
     h, w = disp.shape
     nd = cost.shape[2]
     out = disp.copy()
     for y in prange(h):
-        owner = np.full(w, -1, np.int64)
+        owner = np.empty(w, np.int64)
         owner_cost = np.empty(w, np.float32)
+        claims = np.zeros(w, np.float32)
         for x in range(w):
             d = disp[y, x]
-            if not np.isfinite(d):
-                continue
-            di = int(np.floor(d + 0.5))
-            k = di - min_disp
-            xr = x - di
-            if xr < 0 or xr >= w or k < 0 or k >= nd:
-                out[y, x] = INF
-                continue
-            c = cost[y, x, k]
-            o = owner[xr]
-            if o < 0:
-                owner[xr] = x
-                owner_cost[xr] = c
-            elif c < owner_cost[xr]:
-                out[y, o] = INF  # the earlier claim loses: a collision exposes a wrong match
-                owner[xr] = x
-                owner_cost[xr] = c
-            else:
-                out[y, x] = INF
+            if np.isfinite(d):
+                k = int(np.floor(d + 0.5)) - min_disp
+                if 0 <= k < nd:
+                    claims[x] = cost[y, x, k]
+        _resolve_row(disp, out, y, claims, min_disp, nd, owner, owner_cost)
     return out
+
+
+@njit(cache=True, parallel=True)
+def single_matching_phase_winner_kernel(disp: np.ndarray, wdisp: np.ndarray, wcosts: np.ndarray,
+                                        min_disp: int, ndisp: int):
+    """:func:`single_matching_phase_kernel` with the claim costs read from the costs kept around
+    each WTA winner (fused cost + WTA path, :class:`~stereocli.match.state.WinnerCosts`).
+
+    Returns ``(out, missing)``; ``missing`` counts pixels whose ``round(disp)`` is more than 1
+    from the winner ``wdisp`` (none right after WTA or sub-pixel refinement).
+    """
+    h, w = disp.shape
+    out = disp.copy()
+    missing = np.zeros(h, np.int64)
+    for y in prange(h):
+        owner = np.empty(w, np.int64)
+        owner_cost = np.empty(w, np.float32)
+        claims = np.zeros(w, np.float32)
+        for x in range(w):
+            d = disp[y, x]
+            if np.isfinite(d):
+                k = int(np.floor(d + 0.5)) - min_disp
+                if 0 <= k < ndisp:
+                    j = k - (int(wdisp[y, x]) - min_disp) if np.isfinite(wdisp[y, x]) else 2
+                    if -1 <= j <= 1:
+                        claims[x] = wcosts[y, x, j + 1]
+                    else:
+                        missing[y] += 1
+        _resolve_row(disp, out, y, claims, min_disp, ndisp, owner, owner_cost)
+    return out, missing.sum()
 
 
 @register("refinement", "single_matching_phase", needs_cost=True)
@@ -65,6 +113,18 @@ def single_matching_phase(state: MatchState, params) -> None:
     right-view disparity. Run it right after WTA, before ``subpixel``.
     """
     state.disparity = single_matching_phase_kernel(state.disparity, state.cost, state.min_disp)
+
+
+def _single_matching_phase_on_winner_costs(state: MatchState, params) -> None:
+    # Fused cost + WTA path (stereocli.match.pipeline): the claim costs come from the costs
+    # around each winner instead of the volume; same result.
+    win = state.winner
+    state.disparity, missing = single_matching_phase_winner_kernel(state.disparity, win.disparity, win.costs,
+                                                                   state.min_disp, state.ndisp)
+    check_winner_coverage(int(missing), "single_matching_phase")
+
+
+single_matching_phase.on_winner_costs = _single_matching_phase_on_winner_costs
 
 
 @dataclass(frozen=True)
@@ -87,12 +147,14 @@ def texture(state: MatchState, p: TextureParams) -> None:
     ``min_std`` (a variance threshold of min_std²), like StereoBM's textureThreshold. Higher
     values remove more wrong matches and more correct ones in weak texture.
     """
-    gray = state.gray("left").astype(np.float32)
+    gray = np.asarray(state.gray("left"), dtype=np.float32)
     ksize = (p.window[1], p.window[0])
     mean = cv2.boxFilter(gray, -1, ksize, borderType=cv2.BORDER_REFLECT)
     mean_sq = cv2.boxFilter(gray * gray, -1, ksize, borderType=cv2.BORDER_REFLECT)
     var = mean_sq - mean * mean
-    state.disparity = np.where(var < p.min_std * p.min_std, INF, state.disparity).astype(np.float32)
+    disparity = np.array(state.disparity, dtype=np.float32)  # a new map: stages never edit in place
+    disparity[var < p.min_std * p.min_std] = INF
+    state.disparity = disparity
 
 
 @njit(cache=True, parallel=True)

@@ -152,7 +152,7 @@ def match_item(item: WorkItem) -> dict:
     result = match_pair(left, right, config, min_disp=opts["min_disp"], ndisp=opts["ndisp"],
                         left_valid=left_valid, right_valid=right_valid,
                         want_right="right" in item.outputs, keep_invalid=opts["keep_invalid"],
-                        strip_map=strip_map)
+                        want_confidence="confidence" in item.outputs, strip_map=strip_map)
     seconds = time.perf_counter() - t0
 
     out = item.outputs

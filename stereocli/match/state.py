@@ -5,6 +5,8 @@ mutates ``state``:
 
 * preprocess: replaces ``left``/``right`` (same shape, float32).
 * cost: sets ``cost`` to a ``(H, W, D)`` C-contiguous float32 volume, ``D = ndisp``,
+  (or uint8/uint16 holding integer costs, if ``integer_cost_ok``: the pipeline sets it when
+  the volume goes straight to an optimizer marked ``accepts_integer_cost``, e.g. ``sgm``),
   ``cost[y, x, k]`` = dissimilarity of left ``(x, y)`` and right ``(x - (min_disp + k), y)``,
   lower is better; entries whose right pixel falls outside the image (or outside a valid
   mask) hold the volume's maximum cost ``cost_max``.
@@ -19,6 +21,15 @@ mutates ``state``:
   registered with ``needs_cost=True`` run while ``cost`` is still available (inside each
   row strip), the others on the full stitched map.
 
+Fused cost + WTA (see :mod:`stereocli.match.pipeline`): when a cost stage offers a
+``fused_wta(state, params, winner: bool)`` function, the pipeline is ``cost → wta`` with no
+aggregation, no right-view disparity is wanted and every ``needs_cost`` refinement offers an
+``on_winner_costs(state, params)`` variant, the volume is never built: ``fused_wta`` sets
+``disparity`` (exactly what cost + ``wta`` would give, honouring ``right_valid``) and, if
+``winner``, ``winner`` (:class:`WinnerCosts`, the volume entries around each winner); ``cost``
+stays None, and the refinements run their ``on_winner_costs`` variants, which must give the
+same result as on the volume.
+
 When the image is processed in row strips, ``row_offset`` is the strip's first row in the full
 image and ``rows_valid`` the slice of the strip's rows that is kept (the rest is overlap).
 """
@@ -28,6 +39,14 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+
+
+@dataclass
+class WinnerCosts:
+    """What a fused cost + WTA pass keeps of the volume it never stores."""
+
+    disparity: np.ndarray  # (H, W) float32 WTA disparities min_disp + k (integer-valued, +inf invalid)
+    costs: np.ndarray  # (H, W, 3) float32 volume entries at k - 1, k, k + 1 (cost_max beyond [0, D))
 
 
 @dataclass
@@ -42,10 +61,13 @@ class MatchState:
     right_valid: np.ndarray | None = None  # (H, W) bool
     cost: np.ndarray | None = None  # (H, W, D) float32 (uint16 after sgm), lower is better
     cost_max: float = 0.0  # value held by impossible entries of ``cost``
+    winner: WinnerCosts | None = None  # set instead of ``cost`` by a fused cost + WTA pass
     disparity: np.ndarray | None = None  # (H, W) float32 px, +inf invalid
     disparity_right: np.ndarray | None = None  # (H, W) float32 px, right-referenced, +inf invalid
     confidence: np.ndarray | None = None  # (H, W) float32 in [0, 1]
     want_right: bool = False  # some later stage or output needs disparity_right
+    integer_cost_ok: bool = False  # the cost stage may leave a uint8/uint16 volume
+    want_confidence: bool = False  # a confidence map is wanted (else confidence stages skip)
     row_offset: int = 0
     threads: int = 0  # 0 = numba default
     extras: dict = field(default_factory=dict)  # stage-to-stage data (e.g. raw costs for MI)

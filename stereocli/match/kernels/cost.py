@@ -11,28 +11,37 @@ from numba import njit, prange
 
 
 @njit(cache=True, parallel=True)
+def _census_rows(padded: np.ndarray, h: int, w: int, half_h: int, half_w: int) -> np.ndarray:
+    # ``padded`` is the image with ``half_h``/``half_w`` replicated border rows/columns. The
+    # innermost loop runs along x over row slices with the window offset fixed, which LLVM
+    # vectorises (about 10x faster than building each pixel's string in turn).
+    out = np.zeros((h, w), np.uint64)
+    for y in prange(h):
+        bits = out[y]
+        centre = padded[y + half_h, half_w:half_w + w]
+        for dy in range(-half_h, half_h + 1):
+            for dx in range(-half_w, half_w + 1):
+                if dy == 0 and dx == 0:
+                    continue
+                row = padded[y + half_h + dy, half_w + dx:half_w + dx + w]
+                for x in range(w):
+                    darker = np.float64(centre[x] - row[x]) > 0.0
+                    bits[x] = (bits[x] << np.uint64(1)) | np.uint64(darker)
+    return out
+
+
 def census_transform(image: np.ndarray, half_h: int, half_w: int) -> np.ndarray:
     """Census bit strings of a (H, W) float32 image, one uint64 per pixel.
 
-    Bit = 1 where the neighbour is darker than the centre (Zabih & Woodfill 1994); the centre
-    itself is skipped, so a window may hold up to 65 pixels. Neighbours outside the image are
-    clamped to the border (replicate), so border pixels still get full-length strings.
+    Bit = 1 where the neighbour is darker than the centre (Zabih & Woodfill 1994), neighbours
+    in raster order, most significant first; the centre itself is skipped, so a window may
+    hold up to 65 pixels. Neighbours outside the image are clamped to the border (replicate),
+    so border pixels still get full-length strings.
     """
+    image = np.ascontiguousarray(image, dtype=np.float32)
     h, w = image.shape
-    out = np.zeros((h, w), np.uint64)
-    for y in prange(h):
-        for x in range(w):
-            c = image[y, x]
-            bits = np.uint64(0)
-            for dy in range(-half_h, half_h + 1):
-                yy = min(max(y + dy, 0), h - 1)
-                for dx in range(-half_w, half_w + 1):
-                    if dy == 0 and dx == 0:
-                        continue
-                    xx = min(max(x + dx, 0), w - 1)
-                    bits = (bits << np.uint64(1)) | np.uint64(image[yy, xx] < c)
-            out[y, x] = bits
-    return out
+    padded = np.pad(image, ((half_h, half_h), (half_w, half_w)), mode="edge")
+    return _census_rows(padded, h, w, half_h, half_w)
 
 
 @njit(cache=True, inline="always")
@@ -45,20 +54,42 @@ def _popcount64(v):
 
 
 @njit(cache=True, parallel=True)
-def hamming_volume(census_left: np.ndarray, census_right: np.ndarray, min_disp: int, ndisp: int,
-                   cost_max: float) -> np.ndarray:
-    """Hamming distance between left and right census strings for every hypothesis."""
+def _hamming_rows(census_left, census_right, min_disp: int, cost_max: float, out) -> None:
     h, w = census_left.shape
-    out = np.empty((h, w, ndisp), np.float32)
+    nd = out.shape[2]
+    top = out.dtype.type(cost_max)
     for y in prange(h):
+        # The right row reversed, so hypothesis k reads forward: right[x − min_disp − k] =
+        # reversed[w − 1 − x + min_disp + k] (contiguous loads; the loop vectorises).
+        reversed_right = census_right[y, ::-1].copy()
         for x in range(w):
+            o = out[y, x]
             cl = census_left[y, x]
-            for k in range(ndisp):
-                xr = x - (min_disp + k)
-                if xr < 0 or xr >= w:
-                    out[y, x, k] = cost_max
-                else:
-                    out[y, x, k] = np.float32(_popcount64(cl ^ census_right[y, xr]))
+            # Hypotheses k0..k1 have their right pixel x − min_disp − k inside the image.
+            k0 = max(0, x - min_disp - (w - 1))
+            k1 = min(nd - 1, x - min_disp)
+            for k in range(0, min(k0, nd)):
+                o[k] = top
+            for k in range(max(k1 + 1, 0), nd):
+                o[k] = top
+            if k1 >= k0:
+                base = w - 1 - x + min_disp
+                src = reversed_right[base + k0:base + k1 + 1]
+                dst = o[k0:k1 + 1]
+                for k in range(src.shape[0]):
+                    dst[k] = _popcount64(cl ^ src[k])
+
+
+def hamming_volume(census_left: np.ndarray, census_right: np.ndarray, min_disp: int, ndisp: int,
+                   cost_max: float, dtype=np.float32) -> np.ndarray:
+    """Hamming distance between left and right census strings for every hypothesis.
+
+    Returns (H, W, ``ndisp``) ``dtype`` (float32, or uint8 for windows of at most 255 bits),
+    ``cost_max`` where the right pixel is outside the image.
+    """
+    h, w = census_left.shape
+    out = np.empty((h, w, ndisp), dtype)
+    _hamming_rows(census_left, census_right, int(min_disp), float(cost_max), out)
     return out
 
 

@@ -33,13 +33,15 @@ def _valid_k_range(x: int, min_disp: int, ndisp: int, width: int):
 
 
 @njit(cache=True)
-def _pixel_row(left, right, y, min_disp, mode, truncate, row):
+def _pixel_row(left, right, y, min_disp, mode, truncate, row, channel_mean=True):
     # One image row of pixel-wise costs, right pixels clamped to the border. The hypotheses
     # whose right pixel is inside the image read it with unit stride (vectorisable); the rest
-    # compare with the border pixel.
+    # compare with the border pixel. AD/SD are the mean over channels truncated at
+    # ``truncate``, or with ``channel_mean=False`` the channel *sum* truncated at ``truncate``
+    # (the caller passes C·T and divides later: exact integer sums for 8-bit images).
     h, w, nc = left.shape
     nd = row.shape[1]
-    inv = np.float32(1.0 / nc)
+    inv = np.float32(1.0 / nc) if channel_mean else np.float32(1.0)
     for x in range(w):
         klo, khi = _valid_k_range(x, min_disp, nd, w)
         base = x - min_disp
@@ -102,10 +104,17 @@ def window_cost_volume(left: np.ndarray, right: np.ndarray, min_disp: int, ndisp
     image and the sum divided by its pixel count. ``nbands`` bands run in parallel (a band
     pays ``2·radius_y`` extra rows to start); output does not depend on ``nbands``
     beyond float32 rounding of the running sums.
+
+    AD/SD sum the channels (truncated at C·``truncate``) and divide the window sum by
+    C·pixels, which equals the window mean of the per-pixel channel mean truncated at
+    ``truncate``; with 8-bit images every partial sum is then an integer below 2**24, so the
+    float32 sums are exact and independent of ``nbands``. The fused SAD + WTA kernel
+    (:mod:`.fused_sad`) repeats these float32 operations one for one.
     """
     h, w, nc = left.shape
     out = np.empty((h, w, ndisp), np.float32)
-    trunc = np.float32(truncate)
+    cnorm = 1 if mode == MODE_PRODUCT else nc  # channel sum -> channel mean at the end
+    trunc = np.float32(truncate * cnorm)
     cmax = np.float32(cost_max)
     nbands = max(1, min(nbands, h))
     band = (h + nbands - 1) // nbands
@@ -121,7 +130,7 @@ def window_cost_volume(left: np.ndarray, right: np.ndarray, min_disp: int, ndisp
         acc = np.zeros(ndisp, np.float32)
         for yy in range(max(0, y0 - radius_y), min(h - 1, y0 + radius_y) + 1):
             row = rows[yy % ring]
-            _pixel_row(left, right, yy, min_disp, mode, trunc, row)
+            _pixel_row(left, right, yy, min_disp, mode, trunc, row, False)
             for x in range(w):
                 for k in range(ndisp):
                     col[x, k] += row[x, k]
@@ -131,7 +140,7 @@ def window_cost_volume(left: np.ndarray, right: np.ndarray, min_disp: int, ndisp
                 yr = y - radius_y - 1
                 if ya < h:
                     row = rows[ya % ring]
-                    _pixel_row(left, right, ya, min_disp, mode, trunc, row)
+                    _pixel_row(left, right, ya, min_disp, mode, trunc, row, False)
                     if yr >= 0:
                         old = rows[yr % ring]
                         for x in range(w):
@@ -154,7 +163,7 @@ def window_cost_volume(left: np.ndarray, right: np.ndarray, min_disp: int, ndisp
                     acc[k] += col[x, k]
             for x in range(w):
                 nx = min(w - 1, x + radius_x) - max(0, x - radius_x) + 1
-                inv = np.float32(1.0 / (nx * ny))
+                inv = np.float32(1.0 / (nx * ny * cnorm))
                 klo, khi = _valid_k_range(x, min_disp, ndisp, w)
                 for k in range(min(klo, ndisp)):
                     out[y, x, k] = cmax

@@ -21,6 +21,30 @@ def _valid_range(x: int, w: int, nd: int, min_disp: int):
     return max(0, x - min_disp - (w - 1)), min(nd - 1, x - min_disp)
 
 
+@njit(cache=True, inline="always")
+def _range_min(row, k0: int, k1: int) -> float:
+    # Smallest of row[k0..k1] as float64 (+inf for an empty range); the loop runs in the
+    # row's own dtype so it vectorises.
+    if k1 < k0:
+        return np.inf
+    best = row[k0]
+    for k in range(k0 + 1, k1 + 1):
+        best = min(best, row[k])
+    return np.float64(best)
+
+
+@njit(cache=True, inline="always")
+def _first_min(row, k0: int, k1: int) -> int:
+    # Index of the smallest of row[k0..k1], the first one on ties.
+    best = row[k0]
+    for k in range(k0 + 1, k1 + 1):
+        best = min(best, row[k])
+    for k in range(k0, k1 + 1):
+        if row[k] == best:
+            return k
+    return k0
+
+
 @njit(cache=True, parallel=True)
 def uniqueness(cost, disp, min_disp: int, ratio: float) -> np.ndarray:
     """Invalidate pixels whose best cost is not clearly below every non-adjacent hypothesis.
@@ -39,17 +63,12 @@ def uniqueness(cost, disp, min_disp: int, ratio: float) -> np.ndarray:
             k0, k1 = _valid_range(x, w, nd, min_disp)
             if k1 < k0:
                 continue
-            bk = k0
-            bc = np.float64(cost[y, x, k0])
-            for k in range(k0 + 1, k1 + 1):
-                v = np.float64(cost[y, x, k])
-                if v < bc:
-                    bc = v
-                    bk = k
-            for k in range(k0, k1 + 1):
-                if abs(k - bk) > 1 and np.float64(cost[y, x, k]) * keep < bc:
-                    out[y, x] = INF
-                    break
+            row = cost[y, x]
+            bk = _first_min(row, k0, k1)
+            bc = np.float64(row[bk])
+            second = min(_range_min(row, k0, bk - 2), _range_min(row, bk + 2, k1))
+            if second * keep < bc:
+                out[y, x] = INF
     return out
 
 
@@ -73,17 +92,10 @@ def confidence(cost, disp, disp_right, min_disp: int, lr_scale: float, margin_sc
             k0, k1 = _valid_range(x, w, nd, min_disp)
             if k1 < k0:
                 continue
-            bk = k0
-            bc = np.float64(cost[y, x, k0])
-            for k in range(k0 + 1, k1 + 1):
-                v = np.float64(cost[y, x, k])
-                if v < bc:
-                    bc = v
-                    bk = k
-            sc = np.inf
-            for k in range(k0, k1 + 1):
-                if abs(k - bk) > 1:
-                    sc = min(sc, np.float64(cost[y, x, k]))
+            row = cost[y, x]
+            bk = _first_min(row, k0, k1)
+            bc = np.float64(row[bk])
+            sc = min(_range_min(row, k0, bk - 2), _range_min(row, bk + 2, k1))
             u = 1.0 if not np.isfinite(sc) or sc <= 0 else max(0.0, 1.0 - bc / sc)
             c = min(1.0, u / margin_scale)
             if has_right:
@@ -109,33 +121,61 @@ def classify_holes(disp, disp_right, min_disp: int, max_disp: int, tol: float) -
     label = np.zeros((h, w), np.uint8)
     has_right = disp_right.shape[0] == h and disp_right.shape[1] == w
     for y in prange(h):
-        for x in range(w):
-            if np.isfinite(disp[y, x]):
-                continue
-            label[y, x] = 1
-            if not has_right:
-                continue
-            for d in range(min_disp, max_disp + 1):
-                xr = x - d
-                if xr < 0 or xr >= w:
+        # Scatter from the right view instead of searching every d for every hole: right
+        # pixel xr with disparity v claims x = xr + d for each integer d in [v − tol, v + tol]
+        # inside the range — the same set of (x, d) pairs, O(W·tol) per row.
+        claimed = np.zeros(w, np.bool_)
+        if has_right:
+            for xr in range(w):
+                v = disp_right[y, xr]
+                if not np.isfinite(v):
                     continue
-                if abs(disp_right[y, xr] - d) <= tol:
-                    label[y, x] = 2
-                    break
+                lo = max(min_disp, int(np.ceil(v - tol)))
+                hi = min(max_disp, int(np.floor(v + tol)))
+                for d in range(lo, hi + 1):
+                    x = xr + d
+                    if 0 <= x < w:
+                        claimed[x] = True
+        for x in range(w):
+            if not np.isfinite(disp[y, x]):
+                label[y, x] = 2 if claimed[x] else 1
     return label
 
 
-@njit(cache=True, parallel=True)
-def interpolate_holes(disp, label, max_dist: int) -> np.ndarray:
-    """Fill holes from the nearest valid values along 8 directions (Hirschmüller 2008 §2.5).
+@njit(cache=True)
+def _nearest_along(disp, dy: int, dx: int, value, dist) -> None:
+    # value[y, x] / dist[y, x]: the first finite disparity met walking from (y, x) in steps of
+    # (dy, dx), and the number of steps (0 = none found). One sweep in the order where the
+    # neighbour (y + dy, x + dx) is already done: O(H·W) instead of a walk per hole.
+    h, w = disp.shape
+    for i in range(h):
+        y = h - 1 - i if dy > 0 else i
+        for j in range(w):
+            x = w - 1 - j if dx > 0 else j
+            yy = y + dy
+            xx = x + dx
+            if yy < 0 or yy >= h or xx < 0 or xx >= w:
+                dist[y, x] = 0
+            elif np.isfinite(disp[yy, xx]):
+                value[y, x] = disp[yy, xx]
+                dist[y, x] = 1
+            elif dist[yy, xx] > 0:
+                value[y, x] = value[yy, xx]
+                dist[y, x] = dist[yy, xx] + 1
+            else:
+                dist[y, x] = 0
 
-    Occluded holes (label 1) take the second-lowest found value (background, robust to one
-    outlier); mismatched ones (label 2) the median. Directions without a valid value within
-    ``max_dist`` px (0 = unlimited) are ignored; holes with nothing found stay invalid.
-    """
+
+@njit(cache=True, parallel=True)
+def _nearest_all(disp, value, dist) -> None:
+    for k in prange(8):
+        _nearest_along(disp, DIRECTIONS8[k, 0], DIRECTIONS8[k, 1], value[k], dist[k])
+
+
+@njit(cache=True, parallel=True)
+def _fill_from_nearest(disp, label, value, dist, limit: int) -> np.ndarray:
     h, w = disp.shape
     out = disp.copy()
-    limit = max(h, w) if max_dist <= 0 else max_dist
     for y in prange(h):
         buf = np.empty(8, np.float32)
         for x in range(w):
@@ -144,43 +184,54 @@ def interpolate_holes(disp, label, max_dist: int) -> np.ndarray:
                 continue
             n = 0
             for k in range(8):
-                dy = DIRECTIONS8[k, 0]
-                dx = DIRECTIONS8[k, 1]
-                yy = y + dy
-                xx = x + dx
-                step = 1
-                while 0 <= yy < h and 0 <= xx < w and step <= limit:
-                    v = disp[yy, xx]
-                    if np.isfinite(v):
-                        buf[n] = v
-                        n += 1
-                        break
-                    yy += dy
-                    xx += dx
-                    step += 1
+                steps = dist[k, y, x]
+                if steps > 0 and steps <= limit:
+                    # insertion sort into buf[:n]
+                    v = value[k, y, x]
+                    j = n
+                    while j > 0 and buf[j - 1] > v:
+                        buf[j] = buf[j - 1]
+                        j -= 1
+                    buf[j] = v
+                    n += 1
             if n == 0:
                 continue
-            s = np.sort(buf[:n])
             if lab == 1:
-                out[y, x] = s[1] if n > 1 else s[0]
+                out[y, x] = buf[1] if n > 1 else buf[0]
             elif n % 2 == 1:
-                out[y, x] = s[n // 2]
+                out[y, x] = buf[n // 2]
             else:
-                out[y, x] = np.float32(0.5 * (s[n // 2 - 1] + s[n // 2]))
+                out[y, x] = np.float32(0.5 * (buf[n // 2 - 1] + buf[n // 2]))
     return out
 
 
-@njit(cache=True, parallel=True)
-def median_valid(disp: np.ndarray, radius: int) -> np.ndarray:
-    """Median over the finite values of a (2r+1)² window (insertion sort in a fixed buffer);
-    invalid centres stay invalid (reference: ``tests/test_refine_sgm.py``)."""
+def interpolate_holes(disp: np.ndarray, label: np.ndarray, max_dist: int) -> np.ndarray:
+    """Fill holes from the nearest valid values along 8 directions (Hirschmüller 2008 §2.5).
+
+    Occluded holes (label 1) take the second-lowest found value (background, robust to one
+    outlier); mismatched ones (label 2) the median. Directions without a valid value within
+    ``max_dist`` px (0 = unlimited) are ignored; holes with nothing found stay invalid.
+    """
+    disp = np.ascontiguousarray(disp, dtype=np.float32)
     h, w = disp.shape
-    out = disp.copy()
+    value = np.empty((8, h, w), np.float32)
+    dist = np.empty((8, h, w), np.int32)
+    _nearest_all(disp, value, dist)
+    limit = max(h, w) if max_dist <= 0 else max_dist
+    return _fill_from_nearest(disp, label, value, dist, int(limit))
+
+
+@njit(cache=True, parallel=True)
+def _median_valid_where(disp: np.ndarray, radius: int, todo: np.ndarray, out: np.ndarray) -> None:
+    # General case at the pixels flagged in ``todo``: median of the finite values of the
+    # window clipped to the image (insertion sort in a fixed buffer); the mean of the two
+    # middle values for an even count; invalid centres stay invalid.
+    h, w = disp.shape
     size = (2 * radius + 1) ** 2
     for y in prange(h):
         buf = np.empty(size, np.float32)
         for x in range(w):
-            if not np.isfinite(disp[y, x]):
+            if not todo[y, x] or not np.isfinite(disp[y, x]):
                 continue
             n = 0
             for yy in range(max(0, y - radius), min(h, y + radius + 1)):
@@ -197,6 +248,32 @@ def median_valid(disp: np.ndarray, radius: int) -> np.ndarray:
                 out[y, x] = buf[n // 2]
             else:
                 out[y, x] = np.float32(0.5 * (buf[n // 2 - 1] + buf[n // 2]))
+
+
+def median_valid(disp: np.ndarray, radius: int) -> np.ndarray:
+    """Median over the finite values of a (2r+1)² window clipped to the image; invalid
+    centres stay invalid (reference: ``tests/test_refine_sgm.py``). Returns a new map.
+
+    Windows that are whole and all finite (most of them) take OpenCV's vectorised
+    ``medianBlur`` (float32 supports 3×3 and 5×5); the rest — near holes and borders — the
+    general kernel. Same values either way.
+    """
+    disp = np.ascontiguousarray(disp, dtype=np.float32)
+    h, w = disp.shape
+    size = 2 * radius + 1
+    if radius < 1 or radius > 2 or h < size or w < size:
+        out = disp.copy()
+        _median_valid_where(disp, radius, np.ones((h, w), np.bool_), out)
+        return out
+    import cv2
+
+    out = cv2.medianBlur(disp, size)
+    invalid = (~np.isfinite(disp)).astype(np.uint8)
+    todo = cv2.dilate(invalid, np.ones((size, size), np.uint8)).astype(np.bool_)
+    todo[:radius] = todo[h - radius:] = True
+    todo[:, :radius] = todo[:, w - radius:] = True
+    out[invalid.astype(np.bool_)] = np.inf
+    _median_valid_where(disp, radius, todo, out)
     return out
 
 

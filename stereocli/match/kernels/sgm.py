@@ -2,24 +2,29 @@
 
 Layout and numerics (see ``tests/test_kernels_sgm.py`` for the pure-numpy reference):
 
-* ``cq``: (H, W, D) uint8 or uint16 quantised matching costs, D innermost and contiguous.
+* ``cq``: (H, W, D) uint8 or uint16 matching costs, D innermost and contiguous, multiplied by
+  the integer ``cost_mul`` as they are read (so an integer cost such as a census Hamming
+  distance is used as it is, without a quantised copy).
 * Path costs ``L_r`` live in int16 row buffers of length ``D + 2``: entries ``0`` and ``D + 1``
   hold a large sentinel so the recursion ``min(L[d], L[d-1] + P1, L[d+1] + P1, minL + P2)``
-  has no branches at the ends of the range and LLVM vectorises the loop over D.
-* The minimum of each path vector is computed while it is written and carried to the next
-  pixel (no second pass over D).
-* The caller chooses the quantisation so that ``n_paths · (max(cq) + P2) ≤ 65534``: every
-  ``L_r ≤ max(cq) + P2`` (eq. 13 subtracts the previous minimum), so the uint16 sum
-  ``S = Σ_r L_r`` cannot overflow and no saturation is needed.
-* Two raster passes (Hirschmüller 2008 §2.4 / ARCHITECTURE speed notes): the forward pass
-  (top to bottom, left to right) sums the horizontal path from the left and the paths from the
-  rows above; the backward pass the mirrored directions. Each keeps only three rows of path
-  costs per direction. The two passes write separate uint16 sums and run on two threads;
-  :func:`combine_wta` adds them in place and takes the left (and right) WTA in one sweep.
-  Every element is computed by one thread with integer arithmetic in a fixed order, so the
+  has no branches at the ends of the range. All arithmetic of the inner loop is written in
+  int16/uint16 so LLVM vectorises it 32 lanes wide (AVX-512BW; 16 with AVX2).
+* The caller chooses the quantisation so that ``n_paths · (cap + P2) ≤ 65534`` and
+  ``cap + 3·P2 ≤ 32767`` (``cap`` = largest ``cq · cost_mul``): every ``L_r ≤ cap + P2``
+  (eq. 13 subtracts the previous minimum), so the uint16 sum ``S = Σ_r L_r`` cannot overflow
+  and ``sentinel + P1`` stays inside int16 while never being selected.
+* Adaptive P2 depends only on the guide image, so each row's penalties are computed before
+  the row's inner loops (a division in the inner loop stops LLVM from vectorising it).
+* Two raster passes (Hirschmüller 2008 §2.4): the forward pass (top to bottom, left to right)
+  sums the horizontal path from the left and the paths from the rows above; the backward pass
+  the mirrored directions. Each keeps three rows of path costs per direction. Both passes
+  write into one uint16 volume ``S`` and run on two threads in two phases: first the forward
+  pass covers the top half and the backward pass the bottom half, each *writing* its sums;
+  then each continues into the other half, *adding* its sums to the ones already there, and
+  takes the winner (left and right views) as soon as a pixel's (and row's) total is
+  complete. So there is no separate combine sweep and only one uint16 volume.
+* Every element is computed by one thread with integer arithmetic in a fixed order, so the
   result is bit-identical for any thread count.
-* Known limit: numba promotes int16 arithmetic to int64, so the loop over D vectorises with
-  8 lanes (AVX-512) instead of 32; that is most of the remaining gap to OpenCV's SGBM.
 """
 
 from __future__ import annotations
@@ -28,7 +33,7 @@ import numpy as np
 from numba import njit, prange
 
 INF = np.float32(np.inf)
-SENTINEL = 32767  # int16 path-cost padding at d = -1 and d = D (never selected)
+INT16_MAX = 32767
 
 # Directions (dy, dx) of the downward pass: the predecessor of (y, x) is (y - dy, x - dx).
 # The upward pass uses the same table mirrored, i.e. the opposite directions.
@@ -68,148 +73,191 @@ def _penalty2(i0: float, i1: float, p1: int, p2: int, gamma: float) -> int:
 
 
 @njit(cache=True, inline="always")
-def _start(c, out, acc) -> int:
-    # First pixel of a path: L_r(p, d) = C(p, d).
+def _start(c, mul, out, acc) -> int:
+    # First pixel of a path: L_r(p, d) = C(p, d); adds L_r into ``acc``.
     nd = c.shape[0]
-    m = SENTINEL
+    m = np.int16(INT16_MAX)
+    mul16 = np.int16(mul)
     for d in range(nd):
-        v = np.int32(c[d])
+        v = np.int16(np.int16(c[d]) * mul16)
         out[d + 1] = v
-        acc[d] += v
+        acc[d] = np.uint16(acc[d] + np.uint16(v))
         m = min(m, v)
     return m
 
 
 @njit(cache=True, inline="always")
-def _step(c, prev, pmin, p1, p2, out, acc) -> int:
-    # Eq. 13: L(p,d) = C(p,d) + min(L(p-r,d), L(p-r,d±1) + P1, min_k L(p-r,k) + P2) - min_k L(p-r,k)
+def _step(c, mul, prev, pmin, p1, p2, out, acc) -> int:
+    # Eq. 13: L(p,d) = C(p,d) + min(L(p-r,d), L(p-r,d±1) + P1, min_k L(p-r,k) + P2) - min_k L(p-r,k);
+    # adds L_r into ``acc``. Written in int16 so the loop vectorises at full width.
     nd = c.shape[0]
-    jump = pmin + p2
-    m = SENTINEL
+    pm = np.int16(pmin)
+    jump = np.int16(pmin + p2)
+    pp1 = np.int16(p1)
+    mul16 = np.int16(mul)
+    m = np.int16(INT16_MAX)
     for d in range(nd):
         a = prev[d + 1]
-        b = min(prev[d], prev[d + 2]) + p1
-        v = min(min(a, b), jump) - pmin + c[d]
+        b = np.int16(min(prev[d], prev[d + 2]) + pp1)
+        v = np.int16(np.int16(min(min(a, b), jump) - pm) + np.int16(np.int16(c[d]) * mul16))
         out[d + 1] = v
-        acc[d] += v
+        acc[d] = np.uint16(acc[d] + np.uint16(v))
         m = min(m, v)
     return m
 
 
-@njit(cache=True)
-def sgm_pass(cq, guide, out, dirs, forward: bool, p1: int, p2: int, gamma: float) -> None:
-    """One raster pass: the horizontal path plus the directions ``dirs`` (K, 2) of (dy ≥ 1, dx).
+@njit(cache=True, inline="always")
+def _winner(s, k0: int, k1: int) -> int:
+    """Index of the smallest of ``s[k0..k1]`` (uint16), the first one on ties.
 
-    ``forward``: rows top to bottom, pixels left to right; the predecessor of (y, x) is
-    (y, x − 1) for the horizontal path and (y − dy, x − dx) for the others. Backward: the
-    mirror image (the opposite directions). Writes the sum of these paths' costs into ``out``
-    (uint16). Only three rows of path costs per direction are kept (dy ≤ 2).
+    Packs (value, index) into one uint32 so a plain min reduction, which vectorises, also
+    breaks ties towards the smaller index.
+    """
+    best = np.uint32(0xFFFFFFFF)
+    index = np.uint32(k0)
+    for k in range(k0, k1 + 1):
+        v = (np.uint32(s[k]) << np.uint32(16)) | index
+        best = v if v < best else best
+        index += np.uint32(1)
+    return int(best & np.uint32(0xFFFF))
+
+
+@njit(cache=True)
+def _pass_rows(cq, mul, guide, total, dirs, forward: bool, i0: int, i1: int, fresh: bool,
+               p1: int, p2: int, gamma: float, lbuf, mins, hbuf, pens,
+               disp, disp_r, rbest, min_disp: int) -> None:
+    """Rows ``i0 ≤ i < i1`` (in pass order) of one raster pass; see the module docstring.
+
+    ``forward``: rows top to bottom, pixels left to right, the predecessor of (y, x) is
+    (y, x − 1) for the horizontal path and (y − dy, x − dx) for the others; backward is the
+    mirror image. ``fresh``: write this pass's path sums into ``total`` (first phase) or add
+    them and take the winners (second phase; ``disp``/``disp_r`` are written there).
+    ``lbuf`` (3, W, K, D + 2) int16, ``mins`` (3, W, K) int16, ``hbuf`` (2, D + 2) int16 and
+    ``pens`` (K + 1, W) int32 carry the pass's state from one call to the next; ``rbest`` (W,)
+    uint32 is scratch for the right view.
     """
     h, w, nd = cq.shape
     nk = dirs.shape[0]
     s = 1 if forward else -1
-    lbuf = np.full((3, w, nk, nd + 2), SENTINEL, np.int16)
-    mins = np.zeros((3, w, nk), np.int32)
-    hbuf = np.full((2, nd + 2), SENTINEL, np.int16)
-    tot = np.zeros(nd, np.int32)
-    for i in range(h):
+    want_right = disp_r.shape[0] > 0
+    for i in range(i0, i1):
         y = i if forward else h - 1 - i
         ring = i % 3
+        # Penalties of this row for the horizontal path (index 0) and each direction.
+        for j in range(1, w):
+            x = j if forward else w - 1 - j
+            pens[0, x] = _penalty2(guide[y, x], guide[y, x - s], p1, p2, gamma)
+        for k in range(nk):
+            dy = dirs[k, 0]
+            if i - dy < 0:
+                continue
+            for x in range(w):
+                xp = x - s * dirs[k, 1]
+                if 0 <= xp < w:
+                    pens[k + 1, x] = _penalty2(guide[y, x], guide[y - s * dy, xp], p1, p2, gamma)
+        # One path direction at a time over the whole row: tight loops that LLVM vectorises
+        # well (the row of sums, W·D uint16, stays in L2 between directions).
         hmin = 0
         for j in range(w):
             x = j if forward else w - 1 - j
-            c = cq[y, x]
-            tot[:] = 0
-            # Horizontal path, predecessor (y, x - s).
+            acc = total[y, x]
+            if fresh:
+                acc[:] = 0
             hcur = hbuf[j % 2]
             if j == 0:
-                hmin = _start(c, hcur, tot)
+                hmin = _start(cq[y, x], mul, hcur, acc)
             else:
-                pen = _penalty2(guide[y, x], guide[y, x - s], p1, p2, gamma)
-                hmin = _step(c, hbuf[(j + 1) % 2], hmin, p1, pen, hcur, tot)
-            for k in range(nk):
-                dy = dirs[k, 0]
-                ip = i - dy
+                hmin = _step(cq[y, x], mul, hbuf[(j + 1) % 2], hmin, p1, pens[0, x], hcur, acc)
+        for k in range(nk):
+            ip = i - dirs[k, 0]
+            pr = ip % 3
+            for x in range(w):
                 xp = x - s * dirs[k, 1]
                 cur = lbuf[ring, x, k]
                 if ip < 0 or xp < 0 or xp >= w:
-                    mins[ring, x, k] = _start(c, cur, tot)
+                    mins[ring, x, k] = _start(cq[y, x], mul, cur, total[y, x])
                 else:
-                    pr = ip % 3
-                    pen = _penalty2(guide[y, x], guide[y - s * dy, xp], p1, p2, gamma)
-                    mins[ring, x, k] = _step(c, lbuf[pr, xp, k], mins[pr, xp, k], p1, pen, cur, tot)
-            o = out[y, x]
-            for d in range(nd):
-                o[d] = tot[d]
+                    mins[ring, x, k] = _step(cq[y, x], mul, lbuf[pr, xp, k], mins[pr, xp, k], p1, pens[k + 1, x],
+                                             cur, total[y, x])
+        if not fresh:
+            # The row's sums are complete: left WTA among hypotheses whose right pixel x − d
+            # lies inside the image, and the right view (Hirschmüller 2008 §2.5, same volume:
+            # right pixel xr takes the d minimising S[y, xr + d, d]). For the right view each
+            # left pixel updates a best-so-far array indexed by j = W − 1 − xr, which runs
+            # forward with k, so the update loop vectorises; (value, k) packed in a uint32 keeps
+            # the smallest disparity on ties whatever the order of the pixels.
+            if want_right:
+                rbest[:] = 0xFFFFFFFF
+            for x in range(w):
+                k0 = max(0, x - min_disp - (w - 1))
+                k1 = min(nd - 1, x - min_disp)
+                if k1 < k0:
+                    disp[y, x] = INF
+                    continue
+                acc = total[y, x]
+                disp[y, x] = np.float32(min_disp + _winner(acc, k0, k1))
+                if want_right:
+                    base = w - 1 - x + min_disp
+                    dst = rbest[base + k0:base + k1 + 1]
+                    index = np.uint32(k0)
+                    for k in range(k0, k1 + 1):
+                        v = (np.uint32(acc[k]) << np.uint32(16)) | index
+                        dst[k - k0] = min(dst[k - k0], v)
+                        index += np.uint32(1)
+            if want_right:
+                for xr in range(w):
+                    v = rbest[w - 1 - xr]
+                    if v != 0xFFFFFFFF:
+                        disp_r[y, xr] = np.float32(min_disp + np.int64(v & np.uint32(0xFFFF)))
 
 
 @njit(cache=True, parallel=True)
-def sgm_two_pass(cq, guide, fwd, bwd, dirs, p1: int, p2: int, gamma: float) -> None:
-    """The forward and backward passes, one per thread when two are available."""
+def sgm_two_pass(cq, mul: int, guide, total, dirs, p1: int, p2: int, gamma: float, min_disp: int,
+                 want_right: bool):
+    """Both passes in two phases (module docstring); returns left and right WTA disparities.
+
+    ``total`` (H, W, D) uint16 receives ``S``. Disparities are float32 (H, W), integer-valued,
+    +inf where no hypothesis is inside the image; the right map is (0, 0) when not wanted.
+    """
+    h, w, nd = cq.shape
+    nk = dirs.shape[0]
+    split = h // 2  # forward pass writes rows [0, split), backward rows [split, h) first
+    lbuf = np.full((2, 3, w, nk, nd + 2), INT16_MAX - p1, np.int16)
+    hbuf = np.full((2, 2, nd + 2), INT16_MAX - p1, np.int16)
+    mins = np.zeros((2, 3, w, nk), np.int16)
+    pens = np.full((2, nk + 1, w), p2, np.int32)
+    rbest = np.zeros((2, w if want_right else 0), np.uint32)
+    disp = np.empty((h, w), np.float32)
+    disp_r = np.full((h if want_right else 0, w if want_right else 0), INF, np.float32)
     for t in prange(2):
         if t == 0:
-            sgm_pass(cq, guide, fwd, dirs, True, p1, p2, gamma)
+            _pass_rows(cq, mul, guide, total, dirs, True, 0, split, True, p1, p2, gamma,
+                       lbuf[0], mins[0], hbuf[0], pens[0], disp, disp_r, rbest[0], min_disp)
         else:
-            sgm_pass(cq, guide, bwd, dirs, False, p1, p2, gamma)
-
-
-@njit(cache=True, parallel=True)
-def combine_wta(fwd, bwd, min_disp: int, want_right: bool):
-    """``fwd += bwd`` (the total S, in place) and winner-take-all on it, left and right views.
-
-    Left: restricted to hypotheses whose right pixel ``x − d`` lies inside the image. Right
-    (Hirschmüller 2008 §2.5, same volume): right pixel ``xr`` takes the ``d`` minimising
-    ``S[y, xr + d, d]``, gathered row by row while the row is in cache. Ties go to the
-    smallest disparity. Returns float32 (H, W) integer-valued disparities (left, right),
-    +inf where no hypothesis is inside; the right map is (0, 0) when not wanted.
-    """
-    h, w, nd = fwd.shape
-    disp = np.empty((h, w), np.float32)
-    rh = h if want_right else 0
-    rw = w if want_right else 0
-    disp_r = np.full((rh, rw), INF, np.float32)
-    for y in prange(h):
-        rbest = np.full(rw, 2**31 - 1, np.int64)
-        for x in range(w):
-            f = fwd[y, x]
-            b = bwd[y, x]
-            for k in range(nd):
-                f[k] = f[k] + b[k]
-            k0 = max(0, x - min_disp - (w - 1))
-            k1 = min(nd - 1, x - min_disp)
-            if k1 < k0:
-                disp[y, x] = INF
-                continue
-            bk = k0
-            bc = f[k0]
-            for k in range(k0 + 1, k1 + 1):
-                v = f[k]
-                if v < bc:
-                    bc = v
-                    bk = k
-            disp[y, x] = np.float32(min_disp + bk)
-            if want_right:
-                # x increases, so for a fixed xr the disparity k = x - xr - min_disp increases:
-                # strict < keeps the smallest disparity on ties.
-                for k in range(k0, k1 + 1):
-                    xr = x - min_disp - k
-                    v = np.int64(f[k])
-                    if v < rbest[xr]:
-                        rbest[xr] = v
-                        disp_r[y, xr] = np.float32(min_disp + k)
+            _pass_rows(cq, mul, guide, total, dirs, False, 0, h - split, True, p1, p2, gamma,
+                       lbuf[1], mins[1], hbuf[1], pens[1], disp, disp_r, rbest[1], min_disp)
+    for t in prange(2):
+        if t == 0:
+            _pass_rows(cq, mul, guide, total, dirs, True, split, h, False, p1, p2, gamma,
+                       lbuf[0], mins[0], hbuf[0], pens[0], disp, disp_r, rbest[0], min_disp)
+        else:
+            _pass_rows(cq, mul, guide, total, dirs, False, h - split, h, False, p1, p2, gamma,
+                       lbuf[1], mins[1], hbuf[1], pens[1], disp, disp_r, rbest[1], min_disp)
     return disp, disp_r
 
 
 def sgm_aggregate(cq: np.ndarray, guide: np.ndarray, paths: int, p1: int, p2: int, gamma: float,
-                  min_disp: int, want_right: bool = False):
+                  min_disp: int, want_right: bool = False, cost_mul: int = 1):
     """Path-cost sum ``S`` (H, W, D) uint16 for 2, 4, 8 or 16 paths and its WTA disparities.
 
-    Returns ``(S, disparity_left, disparity_right or None)``.
+    ``cq`` holds integer costs (uint8/uint16) used as ``cq · cost_mul``; see the module
+    docstring for the bounds the caller guarantees. Returns ``(S, disparity_left,
+    disparity_right or None)``.
     """
-    fwd = np.empty(cq.shape, np.uint16)
-    bwd = np.empty(cq.shape, np.uint16)
+    if cq.shape[2] > 65535:
+        raise ValueError("SGM supports at most 65535 disparities")  # the winner packs k in 16 bits
+    total = np.empty(cq.shape, np.uint16)
     guide = np.ascontiguousarray(guide, dtype=np.float32)
-    sgm_two_pass(cq, guide, fwd, bwd, DOWN_DIRECTIONS[paths], p1, p2, gamma)
-    del_b = bwd
-    disp, disp_r = combine_wta(fwd, del_b, min_disp, want_right)
-    return fwd, disp, (disp_r if want_right else None)
+    disp, disp_r = sgm_two_pass(cq, int(cost_mul), guide, total, DOWN_DIRECTIONS[paths], int(p1), int(p2),
+                                float(gamma), int(min_disp), bool(want_right))
+    return total, disp, (disp_r if want_right else None)

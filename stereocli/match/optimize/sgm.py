@@ -41,7 +41,8 @@ def quantization(cost_max: float, paths: int, p1: float, p2: float, levels: int)
     """
     cmax = cost_max if cost_max > 0 else 1.0
     p2 = max(p2, p1)
-    levels = min(levels, int(65534 // (paths * (1.0 + p2))))
+    # uint16 sums (paths · (cap + P2) ≤ 65534) and int16 path costs (cap + 3·P2 ≤ 32767).
+    levels = min(levels, int(65534 // (paths * (1.0 + p2))), int(32767 // (1.0 + 3.0 * p2)))
     scale = levels / cmax
     cap = int(round(cost_max * scale)) if cost_max > 0 else levels
     return scale, max(cap, 1), int(round(p1 * levels)), int(round(p2 * levels))
@@ -53,17 +54,23 @@ def run_sgm(state: MatchState, p: SGMParams) -> None:
         raise ConfigError("optimizer.sgm: no cost volume (the cost stage did not run)")
     cost = state.cost
     scale, cap, p1, p2 = quantization(state.cost_max, p.paths, p.p1, p.p2, p.levels)
-    cq = np.empty(cost.shape, np.uint8 if cap <= 255 else np.uint16)
-    if cost.dtype == np.float32:
-        ks.quantize(cost, scale, cap, cq)
-    else:  # an integer volume (uint16 contract): same rounding in float32
-        ks.quantize(cost.astype(np.float32), scale, cap, cq)
+    mul = int(scale)
+    if cost.dtype in (np.uint8, np.uint16) and mul >= 1:
+        # Integer costs (e.g. census Hamming distances): used as they are, times an integer
+        # factor inside the kernel, so no quantised copy is made.
+        cq = cost
+        scale, cap = float(mul), int(round(state.cost_max)) * mul
+        p1, p2 = int(round(p.p1 * cap)), int(round(max(p.p2, p.p1) * cap))
+    else:
+        mul = 1
+        cq = np.empty(cost.shape, np.uint8 if cap <= 255 else np.uint16)
+        ks.quantize(np.asarray(cost, np.float32), scale, cap, cq)
     # Release the float volume before allocating the sums (peak memory, see module docstring).
     state.cost = None
     del cost
     guide = np.ascontiguousarray(state.gray("left"), dtype=np.float32)
     acc, state.disparity, right = ks.sgm_aggregate(cq, guide, p.paths, p1, p2, float(p.p2_gamma),
-                                                   state.min_disp, state.want_right)
+                                                   state.min_disp, state.want_right, cost_mul=mul)
     if right is not None:
         state.disparity_right = right
     del cq
@@ -89,6 +96,8 @@ def sgm(state: MatchState, p: SGMParams) -> None:
 # while the float input is alive (0.25); afterwards uint8 + 2 × uint16 = 1.25 in total, the
 # same peak. (levels > 255 use a uint16 copy: 0.5.)
 sgm.volume_copies = 0.25
+# Integer costs (census) are used as they are: no float volume, no quantised copy.
+sgm.accepts_integer_cost = True
 
 
 def _buffer_bytes(p: SGMParams, width: int, ndisp: int) -> float:
