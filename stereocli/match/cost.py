@@ -170,7 +170,9 @@ def sad_cost(state: MatchState, p: WindowADParams) -> None:
     time, then a running sum along x), the fast area-based scheme of Di Stefano, Marchionni &
     Mattoccia (2004) and OpenCV's StereoBM; no intermediate pixel-wise volume is stored. The
     classic fixed-window trade-off: bigger windows are more reliable in weak texture and
-    fatten foreground objects at depth edges (Scharstein & Szeliski 2002, §5).
+    fatten foreground objects at depth edges (Scharstein & Szeliski 2002, §5). Followed
+    directly by ``wta`` (no aggregation), the pipeline fuses cost and WTA and never stores the
+    volume (same output, several times faster; see :mod:`stereocli.match.pipeline`).
     """
     _windowed_truncated_ad(state, p)
 

@@ -16,7 +16,11 @@ included). The argmin is vectorised: a float32 cost ``c`` maps to an integer wit
 order (its bit pattern, negative values flipped), packed with ``k`` in the low 32 bits of an
 int64 key, so one integer ``min`` reduction finds the lowest cost and, among equal costs, the
 smallest ``k``. With 8-bit inputs every sum is an integer below 2**24, so the float32
-arithmetic is exact (the same numbers integer arithmetic would give).
+arithmetic is exact (the same numbers integer arithmetic would give). That is why there is no
+separate integer kernel: one float32 path is exact on 8-bit images *and* bit-identical to the
+volume path on fractional ones (after mean removal, LoG, ...), and float32 vectors have as
+many lanes as int32 ones; only int16 sums would be wider, at the price of a second kernel.
+On Teddy (450×375, D = 64, 9×9, 2 threads) this kernel already runs at StereoBM's speed.
 
 Outputs: the WTA disparity (float32, +inf where the best cost is ``cost_max``) and
 ``(H, W, 3)`` float32 "winner costs", the volume entries at ``k − 1, k, k + 1`` around the

@@ -132,7 +132,7 @@ def _pass_rows(cq, mul, guide, total, dirs, forward: bool, i0: int, i1: int, fre
     (y, x − 1) for the horizontal path and (y − dy, x − dx) for the others; backward is the
     mirror image. ``fresh``: write this pass's path sums into ``total`` (first phase) or add
     them and take the winners (second phase; ``disp``/``disp_r`` are written there).
-    ``lbuf`` (3, W, K, D + 2) int16, ``mins`` (3, W, K) int16, ``hbuf`` (2, D + 2) int16 and
+    ``lbuf`` (K, 3, W, D + 2) int16, ``mins`` (K, 3, W) int16, ``hbuf`` (2, D + 2) int16 and
     ``pens`` (K + 1, W) int32 carry the pass's state from one call to the next; ``rbest`` (W,)
     uint32 is scratch for the right view.
     """
@@ -173,11 +173,11 @@ def _pass_rows(cq, mul, guide, total, dirs, forward: bool, i0: int, i1: int, fre
             pr = ip % 3
             for x in range(w):
                 xp = x - s * dirs[k, 1]
-                cur = lbuf[ring, x, k]
+                cur = lbuf[k, ring, x]
                 if ip < 0 or xp < 0 or xp >= w:
-                    mins[ring, x, k] = _start(cq[y, x], mul, cur, total[y, x])
+                    mins[k, ring, x] = _start(cq[y, x], mul, cur, total[y, x])
                 else:
-                    mins[ring, x, k] = _step(cq[y, x], mul, lbuf[pr, xp, k], mins[pr, xp, k], p1, pens[k + 1, x],
+                    mins[k, ring, x] = _step(cq[y, x], mul, lbuf[k, pr, xp], mins[k, pr, xp], p1, pens[k + 1, x],
                                              cur, total[y, x])
         if not fresh:
             # The row's sums are complete: left WTA among hypotheses whose right pixel x − d
@@ -222,9 +222,9 @@ def sgm_two_pass(cq, mul: int, guide, total, dirs, p1: int, p2: int, gamma: floa
     h, w, nd = cq.shape
     nk = dirs.shape[0]
     split = h // 2  # forward pass writes rows [0, split), backward rows [split, h) first
-    lbuf = np.full((2, 3, w, nk, nd + 2), INT16_MAX - p1, np.int16)
+    lbuf = np.full((2, nk, 3, w, nd + 2), INT16_MAX - p1, np.int16)
     hbuf = np.full((2, 2, nd + 2), INT16_MAX - p1, np.int16)
-    mins = np.zeros((2, 3, w, nk), np.int16)
+    mins = np.zeros((2, nk, 3, w), np.int16)
     pens = np.full((2, nk + 1, w), p2, np.int32)
     rbest = np.zeros((2, w if want_right else 0), np.uint32)
     disp = np.empty((h, w), np.float32)
