@@ -22,6 +22,25 @@ def _valid_range(x: int, w: int, nd: int, min_disp: int):
 
 
 @njit(cache=True, inline="always")
+def _insert_sorted(buf, n: int, v) -> int:
+    # Insert v into the sorted buf[:n] (insertion sort step); returns the new length.
+    j = n
+    while j > 0 and buf[j - 1] > v:
+        buf[j] = buf[j - 1]
+        j -= 1
+    buf[j] = v
+    return n + 1
+
+
+@njit(cache=True, inline="always")
+def _sorted_median(buf, n: int):
+    # Median of the sorted buf[:n] (mean of the two middle values for even n), float32.
+    if n % 2 == 1:
+        return buf[n // 2]
+    return np.float32(0.5 * (buf[n // 2 - 1] + buf[n // 2]))
+
+
+@njit(cache=True, inline="always")
 def _range_min(row, k0: int, k1: int) -> float:
     # Smallest of row[k0..k1] as float64 (+inf for an empty range); the loop runs in the
     # row's own dtype so it vectorises.
@@ -186,22 +205,13 @@ def _fill_from_nearest(disp, label, value, dist, limit: int) -> np.ndarray:
             for k in range(8):
                 steps = dist[k, y, x]
                 if steps > 0 and steps <= limit:
-                    # insertion sort into buf[:n]
-                    v = value[k, y, x]
-                    j = n
-                    while j > 0 and buf[j - 1] > v:
-                        buf[j] = buf[j - 1]
-                        j -= 1
-                    buf[j] = v
-                    n += 1
+                    n = _insert_sorted(buf, n, value[k, y, x])
             if n == 0:
                 continue
             if lab == 1:
                 out[y, x] = buf[1] if n > 1 else buf[0]
-            elif n % 2 == 1:
-                out[y, x] = buf[n // 2]
             else:
-                out[y, x] = np.float32(0.5 * (buf[n // 2 - 1] + buf[n // 2]))
+                out[y, x] = _sorted_median(buf, n)
     return out
 
 
@@ -238,16 +248,8 @@ def _median_valid_where(disp: np.ndarray, radius: int, todo: np.ndarray, out: np
                 for xx in range(max(0, x - radius), min(w, x + radius + 1)):
                     v = disp[yy, xx]
                     if np.isfinite(v):
-                        j = n
-                        while j > 0 and buf[j - 1] > v:
-                            buf[j] = buf[j - 1]
-                            j -= 1
-                        buf[j] = v
-                        n += 1
-            if n % 2 == 1:
-                out[y, x] = buf[n // 2]
-            else:
-                out[y, x] = np.float32(0.5 * (buf[n // 2 - 1] + buf[n // 2]))
+                        n = _insert_sorted(buf, n, v)
+            out[y, x] = _sorted_median(buf, n)
 
 
 def median_valid(disp: np.ndarray, radius: int) -> np.ndarray:

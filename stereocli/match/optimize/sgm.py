@@ -26,7 +26,7 @@ S_MAX = 65535
 @dataclass(frozen=True)
 class SGMParams:
     paths: int = param(8, "number of path directions: 2 = scanlines only (fast, streaky), 4, 8, 16", choices=(2, 4, 8, 16))
-    p1: float = param(0.3, "penalty for a 1-px disparity change, as a fraction of the cost's range (cost_max)", unit="× cost_max", low=0.0, high=10.0)
+    p1: float = param(0.33, "penalty for a 1-px disparity change, as a fraction of the cost's range (cost_max)", unit="× cost_max", low=0.0, high=10.0)
     p2: float = param(1.75, "penalty for larger disparity jumps, as a fraction of cost_max (clamped to ≥ p1)", unit="× cost_max", low=0.0, high=20.0)
     p2_gamma: float = param(16.0, "adaptive P2 = max(P1, P2·γ/(γ+|ΔI|)) from the left image gradient along the path; 0 = constant P2", unit="grey levels", low=0.0, high=1000.0)
     levels: int = param(255, "quantisation levels for the matching costs (255 keeps them in uint8)", low=15, high=4095)
