@@ -367,6 +367,19 @@ def ad_census_volume(left: np.ndarray, right: np.ndarray, census_l: np.ndarray, 
     return out
 
 
+@njit(cache=True, inline="always")
+def _gather_window(image, y: int, x: int, half_h: int, half_w: int, vals) -> None:
+    # The window's pixels in raster order into vals (borders replicated).
+    h, w = image.shape
+    i = 0
+    for dy in range(-half_h, half_h + 1):
+        yy = min(max(y + dy, 0), h - 1)
+        for dx in range(-half_w, half_w + 1):
+            xx = min(max(x + dx, 0), w - 1)
+            vals[i] = image[yy, xx]
+            i += 1
+
+
 @njit(cache=True, parallel=True)
 def ordinal_tables(left: np.ndarray, right: np.ndarray, half_h: int, half_w: int):
     """Per-pixel window orderings for the Bhat–Nayar ordinal measure.
@@ -382,23 +395,11 @@ def ordinal_tables(left: np.ndarray, right: np.ndarray, half_h: int, half_w: int
     for y in prange(h):
         vals = np.empty(n, np.float64)
         for x in range(w):
-            i = 0
-            for dy in range(-half_h, half_h + 1):
-                yy = min(max(y + dy, 0), h - 1)
-                for dx in range(-half_w, half_w + 1):
-                    xx = min(max(x + dx, 0), w - 1)
-                    vals[i] = left[yy, xx]
-                    i += 1
+            _gather_window(left, y, x, half_h, half_w, vals)
             idx = np.argsort(vals, kind="mergesort")  # stable: ties by position
             for j in range(n):
                 order_l[y, x, j] = idx[j]
-            i = 0
-            for dy in range(-half_h, half_h + 1):
-                yy = min(max(y + dy, 0), h - 1)
-                for dx in range(-half_w, half_w + 1):
-                    xx = min(max(x + dx, 0), w - 1)
-                    vals[i] = right[yy, xx]
-                    i += 1
+            _gather_window(right, y, x, half_h, half_w, vals)
             idx = np.argsort(vals, kind="mergesort")  # stable: ties by position
             for j in range(n):
                 rank_r[y, x, idx[j]] = j
