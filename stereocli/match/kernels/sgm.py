@@ -107,18 +107,18 @@ def _step(c, mul, prev, pmin, p1, p2, out, acc) -> int:
 
 
 @njit(cache=True, inline="always")
-def _winner(s, k0: int, k1: int) -> int:
-    """Index of the smallest of ``s[k0..k1]`` (uint16), the first one on ties.
+def _pack(cost, k) -> np.uint32:
+    # (cost, k) in one uint32 so a plain min — which vectorises — also breaks ties towards the
+    # smaller index k (cost ≤ 65535, k < 65536).
+    return (np.uint32(cost) << np.uint32(16)) | np.uint32(k)
 
-    Packs (value, index) into one uint32 so a plain min reduction, which vectorises, also
-    breaks ties towards the smaller index.
-    """
+
+@njit(cache=True, inline="always")
+def _winner(s, k0: int, k1: int) -> int:
+    """Index of the smallest of ``s[k0..k1]`` (uint16), the first one on ties."""
     best = np.uint32(0xFFFFFFFF)
-    index = np.uint32(k0)
     for k in range(k0, k1 + 1):
-        v = (np.uint32(s[k]) << np.uint32(16)) | index
-        best = v if v < best else best
-        index += np.uint32(1)
+        best = min(best, _pack(s[k], k))
     return int(best & np.uint32(0xFFFF))
 
 
@@ -199,11 +199,8 @@ def _pass_rows(cq, mul, guide, total, dirs, forward: bool, i0: int, i1: int, fre
                 if want_right:
                     base = w - 1 - x + min_disp
                     dst = rbest[base + k0:base + k1 + 1]
-                    index = np.uint32(k0)
                     for k in range(k0, k1 + 1):
-                        v = (np.uint32(acc[k]) << np.uint32(16)) | index
-                        dst[k - k0] = min(dst[k - k0], v)
-                        index += np.uint32(1)
+                        dst[k - k0] = min(dst[k - k0], _pack(acc[k], k))
             if want_right:
                 for xr in range(w):
                     v = rbest[w - 1 - xr]
@@ -229,20 +226,14 @@ def sgm_two_pass(cq, mul: int, guide, total, dirs, p1: int, p2: int, gamma: floa
     rbest = np.zeros((2, w if want_right else 0), np.uint32)
     disp = np.empty((h, w), np.float32)
     disp_r = np.full((h if want_right else 0, w if want_right else 0), INF, np.float32)
-    for t in prange(2):
-        if t == 0:
-            _pass_rows(cq, mul, guide, total, dirs, True, 0, split, True, p1, p2, gamma,
-                       lbuf[0], mins[0], hbuf[0], pens[0], disp, disp_r, rbest[0], min_disp)
-        else:
-            _pass_rows(cq, mul, guide, total, dirs, False, 0, h - split, True, p1, p2, gamma,
-                       lbuf[1], mins[1], hbuf[1], pens[1], disp, disp_r, rbest[1], min_disp)
-    for t in prange(2):
-        if t == 0:
-            _pass_rows(cq, mul, guide, total, dirs, True, split, h, False, p1, p2, gamma,
-                       lbuf[0], mins[0], hbuf[0], pens[0], disp, disp_r, rbest[0], min_disp)
-        else:
-            _pass_rows(cq, mul, guide, total, dirs, False, h - split, h, False, p1, p2, gamma,
-                       lbuf[1], mins[1], hbuf[1], pens[1], disp, disp_r, rbest[1], min_disp)
+    for phase in range(2):
+        fresh = phase == 0
+        for t in prange(2):
+            forward = t == 0
+            first = split if forward else h - split  # rows (in pass order) of the first phase
+            i0, i1 = (0, first) if fresh else (first, h)
+            _pass_rows(cq, mul, guide, total, dirs, forward, i0, i1, fresh, p1, p2, gamma,
+                       lbuf[t], mins[t], hbuf[t], pens[t], disp, disp_r, rbest[t], min_disp)
     return disp, disp_r
 
 
