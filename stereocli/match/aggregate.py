@@ -23,6 +23,7 @@ from ..registry import param, register
 from .cost import check_odd_window
 from .kernels import aggregation as ka
 from .kernels.cost import mask_invalid_right
+from .kernels.voting import cross_arms_two_threshold
 from .kernels.volume import CV_MAX_CHANNELS, box_filter_volume, wta_left
 from .state import MatchState
 
@@ -186,6 +187,12 @@ class CrossParams:
     tau: float = param(20.0, "colour threshold τ: an arm stops at the first pixel differing by ≥ τ in any channel", unit="grey levels", low=1.0, high=255.0)
     max_arm: int = param(17, "longest arm L", unit="px", low=1, high=100)
     iterations: int = param(2, "aggregation passes (alternating horizontal-first and vertical-first)", low=1, high=8)
+    tau2: float = param(0.0, "two-threshold rule (Mei et al. 2011): beyond max_arm2 the colour must stay within tau2 of the pixel, and each step within tau of the previous arm pixel; 0 = single threshold (Zhang et al. 2009)", unit="grey levels", low=0.0, high=255.0)
+    max_arm2: int = param(17, "with tau2 > 0: arms longer than this (L2) need the stricter tau2", unit="px", low=1, high=100)
+
+    def __post_init__(self):
+        if self.tau2 > 0 and self.max_arm2 > self.max_arm:
+            raise ConfigError(f"aggregation.cross: max_arm2 ({self.max_arm2}) must not exceed max_arm ({self.max_arm})")
 
 
 @register("aggregation", "cross", CrossParams)
@@ -198,9 +205,15 @@ def cross(state: MatchState, p: CrossParams) -> None:
     vertical arm, integrated with 1-D running sums along rows then columns (orthogonal
     integral images) and normalised by the pixel count (Zhang, Lu & Lafruit, IEEE TCSVT
     2009). Supports come from the left image. Larger τ/L: smoother, riskier at edges.
+    With ``tau2 > 0`` the arms follow the two-threshold rule of ADCensus (Mei et al. 2011):
+    long arms (up to ``max_arm`` = L1) in uniform regions, but beyond ``max_arm2`` = L2 only
+    through colours within ``tau2`` of the pixel.
     """
-    arms = ka.cross_arms(np.ascontiguousarray(state.left if state.left.ndim == 3 else state.left[..., None],
-                                              dtype=np.float32), float(p.tau), int(p.max_arm))
+    image = np.ascontiguousarray(state.left if state.left.ndim == 3 else state.left[..., None], dtype=np.float32)
+    if p.tau2 > 0:
+        arms = cross_arms_two_threshold(image, float(p.tau), float(p.tau2), int(p.max_arm), int(p.max_arm2))
+    else:
+        arms = ka.cross_arms(image, float(p.tau), int(p.max_arm))
     # The vertical-first order uses the transposed support (union of vertical arms).
     ones = np.ones(state.shape + (1,), np.float32)
     count_hv = ka.cross_sum_v(ka.cross_sum_h(ones, arms), arms)[..., 0]

@@ -13,3 +13,4 @@ from . import refine  # noqa: F401
 from .optimize import dp, so, bp, gc, coop  # noqa: F401,E401
 from . import refine_segment  # noqa: F401
 from . import refine_local  # noqa: F401
+from . import refine_voting  # noqa: F401
