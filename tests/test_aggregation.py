@@ -135,6 +135,63 @@ def test_guided_filter_keeps_constant_and_follows_guide_edges():
     assert abs(q[5, 8]) < 0.1 and abs(q[5, 11] - 10) < 0.1
 
 
+def _guided_state(left, right, ndisp, min_disp=0, right_view="guided", want_right=True, cost=None):
+    from stereocli.match.state import MatchState
+
+    state = MatchState(left.copy(), right.copy(), min_disp, ndisp, want_right=want_right)
+    if cost is None:
+        stage = registry.get("cost", "color_gradient")
+        stage.func(state, stage.make_params({}))
+    else:
+        state.cost, state.cost_max = cost.copy(), 1.0
+    stage = registry.get("aggregation", "guided_filter")
+    stage.func(state, stage.make_params({"radius": 4, "right_view": right_view}))
+    return state
+
+
+@pytest.mark.parametrize("min_disp", [0, -3])
+def test_guided_right_view_recovers_right_disparity(min_disp):
+    d_bg, d_fg = 3, 9
+    left, right, gt, _ = scene(color=True, d_bg=d_bg, d_fg=d_fg)
+    h, w = gt.shape
+    # right-view truth: the foreground covers right pixels x_r with x_r + d_fg inside it
+    xs = np.arange(w)
+    y0, y1, x0, x1 = h // 4, 3 * h // 4, w // 3, 2 * w // 3
+    gt_r = np.full((h, w), d_bg, np.float32)
+    gt_r[y0:y1, (xs + d_fg >= x0) & (xs + d_fg < x1)] = d_fg
+    mask_r = np.zeros((h, w), bool)
+    mask_r[8:-8, 8:-16] = True
+    mask_r[y0 - 4:y1 + 4, x0 - d_fg - 4:x0 - d_fg + 4] = False  # foreground edges in the right view
+    mask_r[y0 - 4:y1 + 4, x1 - d_fg - 4:x1 - d_bg + 4] = False  # ... and the band occluded in the left
+    mask_r[y0 - 4:y0 + 4] = False
+    mask_r[y1 - 4:y1 + 4] = False
+    st = _guided_state(left, right, 16, min_disp)
+    assert st.disparity_right.dtype == np.float32 and st.disparity_right.shape == (h, w)
+    assert (st.disparity_right[mask_r] == gt_r[mask_r]).mean() > 0.98
+
+
+def test_guided_right_view_equals_diagonal_for_flat_guides():
+    # With flat guide images the guided filter is a plain (twice applied) box filter, which
+    # commutes with the shift that maps a slice to the right view: away from the borders the
+    # right-guided WTA must equal wta_right read from the left-guided volume.
+    from stereocli.match.kernels.volume import wta_right
+
+    rng = np.random.default_rng(5)
+    h, w, nd = 30, 60, 6
+    cost = rng.random((h, w, nd)).astype(np.float32) * 0.9
+    flat = np.full((h, w, 3), 100.0, np.float32)
+    st = _guided_state(flat, flat, nd, cost=cost)
+    ref = wta_right(st.cost, 0, np.float32(1.0))
+    inner = (slice(9, h - 9), slice(9, w - 9 - nd))
+    assert (st.disparity_right[inner] == ref[inner]).mean() > 0.99
+
+
+def test_guided_right_view_only_on_request():
+    left, right, _, _ = scene(color=True)
+    assert _guided_state(left, right, 16, right_view="volume").disparity_right is None
+    assert _guided_state(left, right, 16, want_right=False).disparity_right is None
+
+
 @pytest.mark.parametrize("name", AGGREGATIONS)
 def test_recovers_known_disparity(name):
     left, right, gt, mask = scene(color=True)
@@ -175,6 +232,7 @@ def test_negative_min_disp_and_grey():
     ("locally_consistent", {"gamma_t": -1}, "gamma_t"),
     ("guided_filter", {"eps": 0}, "eps"),
     ("guided_filter", {"radiu": 3}, "radiu"),
+    ("guided_filter", {"right_view": "both"}, "right_view"),
 ])
 def test_invalid_parameters(name, values, key):
     with pytest.raises(ConfigError, match=key):

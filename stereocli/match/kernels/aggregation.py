@@ -230,13 +230,15 @@ def cross_sum_v(cost: np.ndarray, arms: np.ndarray) -> np.ndarray:
 
 @njit(cache=True, inline="always")
 def _colour_weight(feat, seg, y, x, qy, qx, inv_gamma, use_segments):
+    # float32 throughout (inv_gamma is float32): two exps per (pixel, offset) dominate the
+    # kernel, single-precision sqrt/exp are cheaper, and the weights are float32 anyway.
     if use_segments and seg[y, x] == seg[qy, qx]:
         return np.float32(1.0)
-    d = 0.0
+    d = np.float32(0.0)
     for c in range(feat.shape[2]):
         v = feat[y, x, c] - feat[qy, qx, c]
         d += v * v
-    return np.float32(np.exp(-np.sqrt(d) * inv_gamma))
+    return np.exp(-np.sqrt(d) * inv_gamma)
 
 
 @njit(cache=True, parallel=True)
@@ -257,8 +259,9 @@ def weighted_support(cost: np.ndarray, feat_l: np.ndarray, feat_r: np.ndarray, s
     h, w, nd = cost.shape
     n = off_y.size
     out = np.empty((h, w, nd), np.float32)
-    inv_g = 1.0 / gamma_c
+    inv_g = np.float32(1.0 / gamma_c)
     cmax = np.float32(cost_max)
+    min_w = np.float32(min_weight)
     for y in prange(h):
         # wr[o, w - 1 - xr]: right weights stored mirrored so that the loop over k (xr = x − d
         # decreasing) reads them with increasing addresses and vectorises.
@@ -291,7 +294,7 @@ def weighted_support(cost: np.ndarray, feat_l: np.ndarray, feat_r: np.ndarray, s
                 if qy < 0 or qy >= h or qx < 0 or qx >= w:
                     continue
                 wl = spatial[o] * _colour_weight(feat_l, seg_l, y, x, qy, qx, inv_g, use_segments)
-                if wl < min_weight:
+                if wl < min_w:
                     continue
                 wro = wr[o]
                 cq = cost[qy, qx]
