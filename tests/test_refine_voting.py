@@ -9,6 +9,7 @@ import pytest
 from local_scene import run_stages, scene
 from stereocli import registry
 from stereocli.errors import ConfigError
+from stereocli.match.kernels import aggregation as ka
 from stereocli.match.kernels import refine as kr
 from stereocli.match.kernels import voting as kv
 from stereocli.match.state import MatchState
@@ -71,7 +72,7 @@ def test_two_threshold_arms_match_reference():
     # blocky image: smooth patches plus noise, so all three stopping rules occur
     img = np.repeat(np.repeat(rng.uniform(0, 255, (5, 6, 3)), 6, 0), 5, 1)[:28, :27]
     img = np.ascontiguousarray(img + rng.normal(0, 3, img.shape), np.float32)
-    got = kv.cross_arms_two_threshold(img, 20.0, 6.0, 9, 4)
+    got = ka.cross_arms_two_threshold(img, 20.0, 6.0, 9, 4)
     np.testing.assert_array_equal(got, arms_reference(img, 20.0, 6.0, 9, 4))
 
 
@@ -81,10 +82,10 @@ def test_two_threshold_arms_long_only_in_uniform_colour():
     # 4, 8, 12, ...: τ1 = 20 alone would allow 4 steps, τ2 = 6 beyond L2 = 1 stops it after 1.
     row = np.concatenate([np.full(40, 100.0), 100.0 + 4.0 * np.arange(1, 21)]).astype(np.float32)
     img = np.ascontiguousarray(np.tile(row, (3, 1))[..., None])
-    arms = kv.cross_arms_two_threshold(img, 20.0, 6.0, 34, 1)
+    arms = ka.cross_arms_two_threshold(img, 20.0, 6.0, 34, 1)
     assert arms[1, 0, 1] == 34  # right arm of the first pixel: L1
     assert arms[1, 39, 1] == 1  # 100 → 104 → 108: the 2nd step exceeds τ2 beyond L2 = 1
-    loose = kv.cross_arms_two_threshold(img, 20.0, 255.0, 34, 1)
+    loose = ka.cross_arms_two_threshold(img, 20.0, 255.0, 34, 1)
     assert loose[1, 39, 1] == 4  # only τ1: 104, 108, 112, 116 pass, 120 (Δ20) does not
 
 
@@ -97,10 +98,8 @@ def test_region_vote_matches_reference_and_fills_from_own_region():
     disp = disp + rng.normal(0, 0.1, disp.shape).astype(np.float32)
     holes = rng.random((h, w)) < 0.3
     disp[holes] = np.inf
-    arms = kv.cross_arms_two_threshold(img, 20.0, 6.0, 12, 6)
-    got = kv.region_vote(disp, arms, img, 20.0, 6.0, 12, 6, 0, 16, 20, 0.4)
-    lazy = kv.region_vote(disp, np.full_like(arms, -1), img, 20.0, 6.0, 12, 6, 0, 16, 20, 0.4)
-    np.testing.assert_array_equal(lazy, got)  # arms computed on demand give the same votes
+    arms = ka.cross_arms_two_threshold(img, 20.0, 6.0, 12, 6)
+    got = kv.region_vote(disp, arms, 0, 16, 20, 0.4)
     np.testing.assert_allclose(got, vote_reference(disp, arms, 0, 16, 20, 0.4), rtol=0, atol=1e-5)
     truth = np.where(np.arange(w)[None, :] < w // 2, 4.0, 11.0).repeat(h, 0)
     filled = holes & np.isfinite(got)
@@ -110,15 +109,15 @@ def test_region_vote_matches_reference_and_fills_from_own_region():
 
 def test_region_vote_thresholds_leave_undecided_pixels_invalid():
     img = np.zeros((9, 9, 1), np.float32)
-    arms = kv.cross_arms_two_threshold(img, 20.0, 6.0, 4, 4)  # 9×9 support everywhere at the centre
+    arms = ka.cross_arms_two_threshold(img, 20.0, 6.0, 4, 4)  # 9×9 support everywhere at the centre
     disp = np.full((9, 9), np.inf, np.float32)
     disp[:, :4] = 2.0  # 36 votes for 2
     disp[:, 5:] = 7.0  # 36 votes for 7
-    tie = kv.region_vote(disp, arms, img, 20.0, 6.0, 4, 4, 0, 10, 20, 0.6)
+    tie = kv.region_vote(disp, arms, 0, 10, 20, 0.6)
     assert np.isinf(tie[4, 4])  # 50 % share < 60 %
-    few = kv.region_vote(disp, arms, img, 20.0, 6.0, 4, 4, 0, 10, 100, 0.4)
+    few = kv.region_vote(disp, arms, 0, 10, 100, 0.4)
     assert np.isinf(few[4, 4])  # 72 votes < 100
-    ok = kv.region_vote(disp, arms, img, 20.0, 6.0, 4, 4, 0, 10, 20, 0.5)
+    ok = kv.region_vote(disp, arms, 0, 10, 20, 0.5)
     assert ok[4, 4] in (2.0, 7.0)
 
 

@@ -23,7 +23,6 @@ from ..registry import param, register
 from .cost import check_odd_window
 from .kernels import aggregation as ka
 from .kernels.cost import mask_invalid_right
-from .kernels.voting import cross_arms_two_threshold
 from .kernels.volume import CV_MAX_CHANNELS, box_filter_volume, wta_left
 from .state import MatchState
 
@@ -211,7 +210,7 @@ def cross(state: MatchState, p: CrossParams) -> None:
     """
     image = np.ascontiguousarray(state.left if state.left.ndim == 3 else state.left[..., None], dtype=np.float32)
     if p.tau2 > 0:
-        arms = cross_arms_two_threshold(image, float(p.tau), float(p.tau2), int(p.max_arm), int(p.max_arm2))
+        arms = ka.cross_arms_two_threshold(image, float(p.tau), float(p.tau2), int(p.max_arm), int(p.max_arm2))
     else:
         arms = ka.cross_arms(image, float(p.tau), int(p.max_arm))
     # The vertical-first order uses the transposed support (union of vertical arms).

@@ -158,9 +158,16 @@ def interpolate(state: MatchState, p: InterpolateParams) -> None:
     Occlusions take the background: the second-lowest of the nearest valid values in 8
     directions; mismatches take their median. ``match --keep-invalid`` skips this stage.
     """
+    state.disparity = kr.interpolate_holes(state.disparity, hole_labels(state, p.tol), int(p.max_dist))
+
+
+def hole_labels(state: MatchState, tol: float) -> np.ndarray:
+    """(H, W) uint8 labels of the holes of ``state.disparity``: 0 valid, 1 occluded, 2 mismatched
+    (some right-view pixel maps onto it within ``tol`` px); Hirschmüller 2008 §2.5."""
     right = state.disparity_right if state.disparity_right is not None else np.zeros((0, 0), np.float32)
-    label = kr.classify_holes(state.disparity, right, state.min_disp, state.min_disp + state.ndisp - 1, float(p.tol))
-    state.disparity = kr.interpolate_holes(state.disparity, label, int(p.max_dist))
+    return kr.classify_holes(np.ascontiguousarray(state.disparity, dtype=np.float32),
+                             np.ascontiguousarray(right, dtype=np.float32), state.min_disp,
+                             state.min_disp + state.ndisp - 1, float(tol))
 
 
 @dataclass(frozen=True)

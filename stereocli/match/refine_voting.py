@@ -19,8 +19,9 @@ import numpy as np
 from ..errors import ConfigError
 from ..registry import param, register
 from .cost import _channels
-from .kernels import refine as kr
+from .kernels import aggregation as ka
 from .kernels import voting as kv
+from .refine import InterpolateParams, hole_labels
 from .state import MatchState
 
 
@@ -39,7 +40,7 @@ class RegionVotingParams:
             raise ConfigError(f"refinement.region_voting: max_arm2 ({self.max_arm2}) must not exceed max_arm ({self.max_arm})")
 
 
-@register("refinement", "region_voting", RegionVotingParams)
+@register("refinement", "region_voting", RegionVotingParams, fills_holes=True)
 def region_voting(state: MatchState, p: RegionVotingParams) -> None:
     """Iterative region voting (Mei et al. 2011): outliers take the dominant reliable disparity
     of their cross support region.
@@ -53,13 +54,11 @@ def region_voting(state: MatchState, p: RegionVotingParams) -> None:
     for ``proper_interpolation``/``fill``. Assumes a colour region is one fronto-parallel-ish
     surface (1-px bins): slanted surfaces spanning many bins vote less decisively.
     """
-    image = _channels(state.left)
-    # Arms are computed on demand (−1 = not yet), only where outliers' supports reach.
-    arms = np.full(state.shape + (4,), -1, np.int32)
+    arms = ka.cross_arms_two_threshold(_channels(state.left), float(p.tau1), float(p.tau2), int(p.max_arm),
+                                       int(p.max_arm2))
     disp = np.ascontiguousarray(state.disparity, dtype=np.float32)
     for _ in range(p.iterations):
-        new = kv.region_vote(disp, arms, image, float(p.tau1), float(p.tau2), int(p.max_arm), int(p.max_arm2),
-                             state.min_disp, state.ndisp, int(p.min_votes), float(p.min_share))
+        new = kv.region_vote(disp, arms, state.min_disp, state.ndisp, int(p.min_votes), float(p.min_share))
         done = np.array_equal(np.isfinite(new), np.isfinite(disp))
         disp = new
         if done:
@@ -67,14 +66,8 @@ def region_voting(state: MatchState, p: RegionVotingParams) -> None:
     state.disparity = disp
 
 
-@dataclass(frozen=True)
-class ProperInterpolationParams:
-    max_dist: int = param(0, "search at most this many steps along each direction (0 = unlimited)", unit="px", low=0, high=100000)
-    tol: float = param(1.0, "an outlier is a mismatch when a right-view pixel maps back onto it within tol", unit="px", low=0.0, high=10.0)
-
-
-@register("refinement", "proper_interpolation", ProperInterpolationParams, needs_right=True, fills_holes=True)
-def proper_interpolation(state: MatchState, p: ProperInterpolationParams) -> None:
+@register("refinement", "proper_interpolation", InterpolateParams, needs_right=True, fills_holes=True)
+def proper_interpolation(state: MatchState, p: InterpolateParams) -> None:
     """Fill outliers from the nearest reliable pixels in 16 directions (Mei et al. 2011).
 
     Outliers are classified from the right-view disparity (as ``interpolate`` does): a
@@ -84,9 +77,7 @@ def proper_interpolation(state: MatchState, p: ProperInterpolationParams) -> Non
     mismatches and 2-D neighbourhoods for both, so thin foreground structures and holes inside
     surfaces are filled from the right surface. Costs 16 ray walks per outlier.
     """
-    disp = np.ascontiguousarray(state.disparity, dtype=np.float32)
-    right = state.disparity_right if state.disparity_right is not None else np.zeros((0, 0), np.float32)
-    label = kr.classify_holes(disp, np.ascontiguousarray(right, dtype=np.float32), state.min_disp,
-                              state.min_disp + state.ndisp - 1, float(p.tol))
     steps = max(state.shape) if p.max_dist <= 0 else int(p.max_dist)
-    state.disparity = kv.proper_interpolation(disp, label, _channels(state.left), kv.DIRECTIONS16, steps)
+    state.disparity = kv.proper_interpolation(np.ascontiguousarray(state.disparity, dtype=np.float32),
+                                              hole_labels(state, p.tol), _channels(state.left),
+                                              kv.DIRECTIONS16, steps)

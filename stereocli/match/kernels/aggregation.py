@@ -152,35 +152,103 @@ def variable_window(sat: np.ndarray, rad_y: np.ndarray, rad_x: np.ndarray, alpha
 # --- cross-based support regions (Zhang et al. 2009) ---------------------------------------
 
 
+#: Arm directions (dy, dx) in the order of the arms arrays: left, right, up, down.
+ARM_STEPS = np.array([(0, -1), (0, 1), (-1, 0), (1, 0)], np.int64)
+
+
+def _planes(image: np.ndarray) -> np.ndarray:
+    # (H, W, C) -> (C, H, W) float32, so each channel's rows load contiguously.
+    return np.ascontiguousarray(np.moveaxis(image, 2, 0), dtype=np.float32)
+
+
 @njit(cache=True, parallel=True)
+def _arms_rows(planes: np.ndarray, tau1: float, tau_step: float, tau2: float, max_len1: int,
+               max_len2: int) -> np.ndarray:
+    # Arm lengths (H, W, 4) of the (C, H, W) image: an arm grows from p to q while
+    # D(p, q) < tau1, D(q_prev, q) < tau_step, and, beyond max_len2 px, D(p, q) < tau2, up to
+    # max_len1 px (D = max over channels of |difference|); the first step is always taken.
+    # All pixels of a row grow their arm one step at a time; every inner loop runs over an
+    # aligned row slice with non-negative indices, so it vectorises.
+    nc, h, w = planes.shape
+    arms = np.zeros((h, w, 4), np.int32)
+    t1 = np.float32(tau1)
+    ts = np.float32(tau_step)
+    t2 = np.float32(tau2)
+    for y in prange(h):
+        growing = np.empty(w, np.bool_)
+        length = np.empty(w, np.int32)
+        to_p = np.empty(w, np.float32)
+        to_prev = np.empty(w, np.float32)
+        for a in range(4):
+            dy = ARM_STEPS[a, 0]
+            dx = ARM_STEPS[a, 1]
+            growing[:] = True
+            length[:] = 0
+            for step in range(1, max_len1 + 1):
+                qy = y + step * dy
+                if qy < 0 or qy >= h:
+                    break
+                # Pixels x whose arm pixel q = x + step·dx is inside the row: [x0, x1).
+                x0 = max(0, -step * dx)
+                x1 = min(w, w - step * dx)
+                growing[:x0] = False
+                growing[x1:] = False
+                n = x1 - x0
+                if n <= 0:
+                    break
+                g = growing[x0:x1]
+                ln = length[x0:x1]
+                if step == 1:  # the first step is always taken: supports are never one pixel
+                    for i in range(n):
+                        ln[i] += g[i]
+                    continue
+                dp = to_p[x0:x1]
+                dq = to_prev[x0:x1]
+                dp[:] = 0.0
+                dq[:] = 0.0
+                py = qy - dy  # the arm pixel before q
+                for c in range(nc):
+                    centre = planes[c, y, x0:x1]
+                    here = planes[c, qy, x0 + step * dx:x1 + step * dx]
+                    before = planes[c, py, x0 + (step - 1) * dx:x1 + (step - 1) * dx]
+                    for i in range(n):
+                        dp[i] = max(dp[i], abs(here[i] - centre[i]))
+                        dq[i] = max(dq[i], abs(here[i] - before[i]))
+                alive = 0
+                for i in range(n):
+                    ok = g[i] and dp[i] < t1 and dq[i] < ts and (step <= max_len2 or dp[i] < t2)
+                    g[i] = ok
+                    ln[i] += ok
+                    alive += ok
+                if alive == 0:
+                    break
+            for x in range(w):
+                arms[y, x, a] = length[x]
+    return arms
+
+
+def cross_arms_two_threshold(image: np.ndarray, tau1: float, tau2: float, max_len1: int, max_len2: int) -> np.ndarray:
+    """Arm lengths (H, W, 4) int32 (left, right, up, down) by the two-threshold rule.
+
+    Mei et al. (2011, eq. 4): the arm grows from p to q while
+    (1) D_c(p, q) < τ1 and D_c(q, q_prev) < τ1 (q_prev = the arm pixel before q: the arm
+    cannot cross an edge even where it returns to p's colour), (2) |p − q| ≤ L1, and
+    (3) D_c(p, q) < τ2 once |p − q| > L2 (long arms only through very similar colours, so
+    large textureless regions get large supports without leaking across weak edges).
+    D_c = max over channels of the absolute difference. As in :func:`cross_arms`, every arm has
+    length ≥ 1 where the image allows. ``image`` (H, W, C) float32.
+    """
+    return _arms_rows(_planes(image), float(tau1), float(tau1), float(tau2), int(max_len1), int(max_len2))
+
+
 def cross_arms(image: np.ndarray, tau: float, max_len: int) -> np.ndarray:
     """Arm lengths (H, W, 4) int32: left, right, up, down.
 
     An arm grows from p while the neighbour q satisfies max_c |I_c(q) − I_c(p)| < τ and the arm
     is at most ``max_len`` pixels (Zhang, Lu, Lafruit 2009, eq. 2); every arm has length ≥ 1
-    where the image allows, so the support is never a single pixel.
+    where the image allows, so the support is never a single pixel. ``image`` (H, W, C) float32.
     """
-    h, w, nc = image.shape
-    arms = np.zeros((h, w, 4), np.int32)
-    for y in prange(h):
-        for x in range(w):
-            for a in range(4):
-                dx = -1 if a == 0 else (1 if a == 1 else 0)
-                dy = -1 if a == 2 else (1 if a == 3 else 0)
-                n = 0
-                while n < max_len:
-                    qx = x + (n + 1) * dx
-                    qy = y + (n + 1) * dy
-                    if qx < 0 or qx >= w or qy < 0 or qy >= h:
-                        break
-                    diff = 0.0
-                    for c in range(nc):
-                        diff = max(diff, abs(image[qy, qx, c] - image[y, x, c]))
-                    if diff >= tau and n >= 1:
-                        break
-                    n += 1
-                arms[y, x, a] = n
-    return arms
+    return _arms_rows(_planes(image), float(tau), np.inf, np.inf, int(max_len), int(max_len))
 
 
 @njit(cache=True, parallel=True)

@@ -1,5 +1,5 @@
-"""Compiled kernels of the ADCensus outlier handling (Mei et al. 2011): two-threshold cross
-arms, region voting, proper interpolation.
+"""Compiled kernels of the ADCensus outlier handling (Mei et al. 2011): region voting and proper
+interpolation (the two-threshold cross arms are in :mod:`.aggregation`).
 
 Disparity maps are (H, W) float32 px, left-referenced, +inf = outlier (unreliable). Images are
 (H, W, C) float32 in [0, 255]. Small pure-numpy references live in
@@ -20,87 +20,15 @@ DIRECTIONS16 = np.array(
      (0, -1), (-1, -2), (-1, -1), (-2, -1), (-1, 0), (-2, 1), (-1, 1), (-1, 2)], np.int32)
 
 
-@njit(cache=True, inline="always")
-def _colour_diff(image: np.ndarray, y0: int, x0: int, y1: int, x1: int) -> float:
-    diff = 0.0
-    for c in range(image.shape[2]):
-        diff = max(diff, abs(image[y1, x1, c] - image[y0, x0, c]))
-    return diff
-
-
-#: Arm directions (dy, dx) in the order of the arms arrays: left, right, up, down.
-ARM_STEPS = np.array([(0, -1), (0, 1), (-1, 0), (1, 0)], np.int64)
-
-
-@njit(cache=True, inline="always")
-def _arm_length(image: np.ndarray, y: int, x: int, arm: int, tau1: float, tau2: float, max_len1: int,
-                max_len2: int) -> int:
-    # One arm of pixel (y, x) by the two-threshold rule (see cross_arms_two_threshold).
-    h, w = image.shape[0], image.shape[1]
-    dy = ARM_STEPS[arm, 0]
-    dx = ARM_STEPS[arm, 1]
-    n = 0
-    while n < max_len1:
-        qx = x + (n + 1) * dx
-        qy = y + (n + 1) * dy
-        if qx < 0 or qx >= w or qy < 0 or qy >= h:
-            break
-        if n >= 1:
-            dp = _colour_diff(image, y, x, qy, qx)
-            dq = _colour_diff(image, qy - dy, qx - dx, qy, qx)
-            if dp >= tau1 or dq >= tau1 or (n + 1 > max_len2 and dp >= tau2):
-                break
-        n += 1
-    return n
-
-
 @njit(cache=True, parallel=True)
-def cross_arms_two_threshold(image: np.ndarray, tau1: float, tau2: float, max_len1: int, max_len2: int) -> np.ndarray:
-    """Arm lengths (H, W, 4) int32 (left, right, up, down) by the two-threshold rule.
-
-    Mei et al. (2011, eq. 4): the arm grows from p to q while
-    (1) D_c(p, q) < τ1 and D_c(q, q_prev) < τ1 (q_prev = the arm pixel before q: the arm
-    cannot cross an edge even where it returns to p's colour), (2) |p − q| ≤ L1, and
-    (3) D_c(p, q) < τ2 once |p − q| > L2 (long arms only through very similar colours, so
-    large textureless regions get large supports without leaking across weak edges).
-    D_c = max over channels of the absolute difference. As in
-    :func:`stereocli.match.kernels.aggregation.cross_arms`, every arm has length ≥ 1 where the
-    image allows.
-    """
-    h, w = image.shape[0], image.shape[1]
-    arms = np.zeros((h, w, 4), np.int32)
-    for y in prange(h):
-        for x in range(w):
-            for a in range(4):
-                arms[y, x, a] = _arm_length(image, y, x, a, tau1, tau2, max_len1, max_len2)
-    return arms
-
-
-@njit(cache=True, inline="always")
-def _arm(arms: np.ndarray, image: np.ndarray, y: int, x: int, a: int, tau1: float, tau2: float,
-         max_len1: int, max_len2: int) -> int:
-    # arms[y, x, a], computed on first use (−1 = not yet). Two threads may compute the same
-    # entry; both write the same value, so the result does not depend on the schedule.
-    n = arms[y, x, a]
-    if n < 0:
-        n = _arm_length(image, y, x, a, tau1, tau2, max_len1, max_len2)
-        arms[y, x, a] = n
-    return n
-
-
-@njit(cache=True, parallel=True)
-def region_vote(disp: np.ndarray, arms: np.ndarray, image: np.ndarray, tau1: float, tau2: float,
-                max_len1: int, max_len2: int, min_disp: int, ndisp: int, min_votes: int,
+def region_vote(disp: np.ndarray, arms: np.ndarray, min_disp: int, ndisp: int, min_votes: int,
                 min_share: float) -> np.ndarray:
     """One pass of region voting: each outlier takes the dominant reliable disparity of its
     cross support region.
 
     The support of p is the union of the horizontal arms of the pixels on p's vertical arm
-    (Mei et al. 2011, §4, "iterative region voting"). ``arms`` (H, W, 4) int32 holds arm
-    lengths as :func:`cross_arms_two_threshold` gives them for ``image`` and the thresholds;
-    entries of −1 are computed here on first use and stored, so a caller can pass
-    ``np.full((H, W, 4), -1)`` and pay only for the arms that outliers reach (a few % of the
-    image after an LR check) instead of every pixel's. Reliable (finite) disparities vote into
+    (Mei et al. 2011, §4, "iterative region voting"); ``arms`` (H, W, 4) int32 as
+    :func:`stereocli.match.kernels.aggregation.cross_arms_two_threshold` gives them. Reliable (finite) disparities vote into
     1-px bins ``round(d) − min_disp``; with S votes and H* in the fullest bin, p takes the mean
     of the votes in that bin when S ≥ ``min_votes`` and H*/S ≥ ``min_share``, else stays
     +inf. Reads only the input map (Jacobi update), so the result does not depend on the
@@ -108,7 +36,11 @@ def region_vote(disp: np.ndarray, arms: np.ndarray, image: np.ndarray, tau1: flo
     """
     h, w = disp.shape
     out = disp.copy()
-    for y in prange(h):
+    half = (h + 1) // 2
+    for i in prange(h):
+        # Rows interleaved from both halves of the image: outliers cluster (occluded bands,
+        # textureless areas), and prange gives each thread one contiguous block of i.
+        y = i // 2 if i % 2 == 0 else half + i // 2
         hist = np.zeros(ndisp, np.int32)
         sums = np.zeros(ndisp, np.float64)
         for x in range(w):
@@ -117,12 +49,8 @@ def region_vote(disp: np.ndarray, arms: np.ndarray, image: np.ndarray, tau1: flo
             hist[:] = 0
             sums[:] = 0.0
             total = 0
-            up = _arm(arms, image, y, x, 2, tau1, tau2, max_len1, max_len2)
-            down = _arm(arms, image, y, x, 3, tau1, tau2, max_len1, max_len2)
-            for yy in range(y - up, y + down + 1):
-                left = _arm(arms, image, yy, x, 0, tau1, tau2, max_len1, max_len2)
-                right = _arm(arms, image, yy, x, 1, tau1, tau2, max_len1, max_len2)
-                for xx in range(x - left, x + right + 1):
+            for yy in range(y - arms[y, x, 2], y + arms[y, x, 3] + 1):
+                for xx in range(x - arms[yy, x, 0], x + arms[yy, x, 1] + 1):
                     d = disp[yy, xx]
                     if not np.isfinite(d):
                         continue
