@@ -325,14 +325,30 @@ def local_consistency(disp, left, right, min_disp: int, ndisp: int, radius: int,
     h, w, c = left.shape
     out = np.full((h, w), INF, np.float32)
     conf = np.zeros((h, w), np.float32)
+    # Tables instead of exp per vote: spatial weights per offset, colour weights per summed
+    # absolute difference in quarter grey levels (exact for 8-bit images).
+    side = 2 * radius + 1
+    spatial = np.empty((side, side))
+    for i in range(side):
+        for j in range(side):
+            spatial[i, j] = np.exp(-np.sqrt(float((i - radius) ** 2 + (j - radius) ** 2)) / gamma_s)
+    steps = 4 * 255 * c + 1
+    colour_w = np.empty(steps)
+    match_w = np.empty(steps)
+    for i in range(steps):
+        colour_w[i] = np.exp(-(0.25 * i / c) / gamma_c)
+        match_w[i] = np.exp(-(0.25 * i / c) / gamma_t)
+    outside_w = np.exp(-255.0 / gamma_t)
     for y in prange(h):
         mass = np.zeros(ndisp)
         sumd = np.zeros(ndisp)
+        # Bins that received votes for the current pixel: only those are searched and reset
+        # (a window holds at most side² votes; the range may be hundreds of bins).
+        touched = np.empty(side * side, np.int64)
         for x in range(w):
             if not fill_invalid and not np.isfinite(disp[y, x]):
                 continue
-            mass[:] = 0.0
-            sumd[:] = 0.0
+            n_touched = 0
             total = 0.0
             for yy in range(max(0, y - radius), min(h, y + radius + 1)):
                 for xx in range(max(0, x - radius), min(w, x + radius + 1)):
@@ -342,30 +358,34 @@ def local_consistency(disp, left, right, min_disp: int, ndisp: int, radius: int,
                     k = int(np.floor(dg - min_disp + 0.5))
                     if k < 0 or k >= ndisp:
                         continue
-                    dist = np.sqrt(float((yy - y) ** 2 + (xx - x) ** 2))
                     dc = 0.0
                     for ch in range(c):
                         dc += abs(left[y, x, ch] - left[yy, xx, ch])
-                    dc /= c
-                    wgt = np.exp(-dist / gamma_s - dc / gamma_c)
+                    wgt = spatial[yy - y + radius, xx - x + radius] * colour_w[min(int(4.0 * dc + 0.5), steps - 1)]
                     xf = int(np.floor(x - dg + 0.5))
                     xg = int(np.floor(xx - dg + 0.5))
                     if 0 <= xf < w and 0 <= xg < w:
                         dt = 0.0
                         for ch in range(c):
                             dt += abs(right[y, xf, ch] - right[yy, xg, ch])
-                        wgt *= np.exp(-(dt / c) / gamma_t)
+                        wgt *= match_w[min(int(4.0 * dt + 0.5), steps - 1)]
                     else:
-                        wgt *= np.exp(-255.0 / gamma_t)
+                        wgt *= outside_w
+                    if mass[k] == 0.0:
+                        touched[n_touched] = k
+                        n_touched += 1
                     mass[k] += wgt
                     sumd[k] += wgt * dg
                     total += wgt
-            if total <= 0:
-                continue
-            best = 0
-            for k in range(1, ndisp):
-                if mass[k] > mass[best]:
+            best = -1
+            for j in range(n_touched):
+                k = touched[j]
+                if best < 0 or mass[k] > mass[best] or (mass[k] == mass[best] and k < best):
                     best = k
-            out[y, x] = np.float32(sumd[best] / mass[best])
-            conf[y, x] = np.float32(mass[best] / total)
+            if total > 0:
+                out[y, x] = np.float32(sumd[best] / mass[best])
+                conf[y, x] = np.float32(mass[best] / total)
+            for j in range(n_touched):
+                mass[touched[j]] = 0.0
+                sumd[touched[j]] = 0.0
     return out, conf
