@@ -1,14 +1,17 @@
 #!/usr/bin/env python3
 """Accuracy of the local aggregation methods on the Middlebury 2001/2003 scenes.
 
-Every method runs as  cost → aggregation → WTA → sub-pixel → LR check → hole filling (dense:
-scanline background fill, then a bilateral weighted median on the filled pixels, Hosni et al.),
-through :func:`stereocli.match.pipeline.match_pair`, and is scored with bad > 1.0 px over
-non-occluded pixels. The official v2 region masks are not in ``../shared/data``: the nonocc
-masks are *derived* from the GT (z-buffer visibility, cross-checked with ``disp6`` for
-Teddy/Cones; ``stereocli.evaluate.datasets.load_middlebury_v2``), so numbers are close to,
-not identical with, the published v2 table. ``guided_filter`` runs with ``right_view: guided``
-(the right-view map for the LR check is filtered with the right image as guide, as in
+Every method runs as  cost → aggregation → WTA → sub-pixel (parabola) → LR check (1 px) → hole
+filling (region voting, then 16-direction proper interpolation: the ADCensus outlier handling of
+Mei et al. 2011) → median 3×3 → ``plane_smooth`` (gated, colour-weighted line fits: a second
+sub-pixel step that removes the pixel locking of the parabola fit), dense output, through
+:func:`stereocli.match.pipeline.match_pair`, and is scored with bad > 1.0 px over non-occluded
+pixels. One chain (:data:`REFINEMENT`) for every method and scene. The official v2 region
+masks are not in ``../shared/data``: the nonocc masks are *derived* from the GT (z-buffer
+visibility, cross-checked with ``disp6`` for Teddy/Cones;
+``stereocli.evaluate.datasets.load_middlebury_v2``), so numbers are close to, not identical
+with, the published v2 table. ``guided_filter`` runs with ``right_view: guided`` (the
+right-view map for the LR check is filtered with the right image as guide, as in
 Rhemann/Hosni et al.); the other aggregations are symmetric in the two views or read the right
 view from the volume.
 
@@ -64,8 +67,18 @@ METHODS = {
     "guided_filter": ({"name": "color_gradient"}, [{"name": "guided_filter", "right_view": "guided"}],
                       (1.51, 0.20, 6.16, 2.71)),
 }
-REFINEMENT = [{"name": "lr_check", "max_diff": 1.0}, {"name": "subpixel", "method": "parabola"},
-              {"name": "fill_weighted_median"}]
+#: WTA → sub-pixel → LR check → hole filling (→ median → sub-pixel smoothing), as issue #6 asks.
+#: ``subpixel`` needs the cost volume, so the pipeline runs it before the map stages.
+REFINEMENT = [
+    {"name": "subpixel", "method": "parabola"},
+    {"name": "lr_check", "max_diff": 1.0},
+    {"name": "region_voting"},  # holes inside colour regions take the region's dominant disparity
+    {"name": "proper_interpolation"},  # the rest: background for occlusions, closest colour for mismatches
+    {"name": "median", "size": 3},
+    {"name": "plane_smooth"},  # registry defaults (radius 10, gate 1 px, colour range 20)
+]
+#: Stages that make values non-integer; ``--no-subpixel`` leaves them out.
+SUBPIXEL_STAGES = ("subpixel", "plane_smooth")
 
 
 def derive_disc_mask(gt: np.ndarray, nonocc: np.ndarray, gap: float = 2.0, width: int = 9) -> np.ndarray:
@@ -90,8 +103,7 @@ def derive_disc_mask(gt: np.ndarray, nonocc: np.ndarray, gap: float = 2.0, width
 
 def config_for(method: str, threads: int, subpixel: bool = True):
     cost, aggregation, _ = METHODS[method]
-    # subpixel needs the cost volume, so it runs before the map stages (lr_check, fill)
-    refinement = ([REFINEMENT[1]] if subpixel else []) + [REFINEMENT[0], REFINEMENT[2]]
+    refinement = [stage for stage in REFINEMENT if subpixel or stage["name"] not in SUBPIXEL_STAGES]
     return validate({"preprocess": [], "cost": cost, "aggregation": aggregation, "optimizer": {"name": "wta"},
                      "refinement": refinement, "runtime": {"threads": threads}}, f"<{method}>")
 
@@ -102,7 +114,8 @@ def main(argv=None) -> int:
     ap.add_argument("--methods", default="", help="comma-separated substrings of method names (default: all)")
     ap.add_argument("--ranges", default="16,32,64,64", help="ndisp for Tsukuba,Venus,Teddy,Cones (SGM paper: 16,32,64,64)")
     ap.add_argument("--threads", type=int, default=0)
-    ap.add_argument("--no-subpixel", action="store_true", help="integer disparities (Tsukuba's GT is integer)")
+    ap.add_argument("--no-subpixel", action="store_true",
+                    help="integer disparities: no subpixel, no plane_smooth (Tsukuba's GT is integer)")
     ap.add_argument("--breakdown", action="store_true",
                     help="print each score as total (near depth edges / elsewhere), derived disc mask")
     args = ap.parse_args(argv)
