@@ -1,5 +1,6 @@
 """Compiled kernels of the refinement stages: uniqueness, confidence, hole classification and
-interpolation, median and joint bilateral filters on (H, W) float32 disparity maps (+inf invalid).
+interpolation, median and joint bilateral filters, and the line fits of ``plane_smooth``, on
+(H, W) float32 disparity maps (+inf invalid).
 
 Cost volumes may be float32 or uint16 (SGM sums); values are read as float64.
 """
@@ -305,8 +306,6 @@ def joint_bilateral(disp, guide, radius: int, sigma_space: float, sigma_color: f
                     sv += wt * v
             out[y, x] = np.float32(sv / sw)
     return out
-
-
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
