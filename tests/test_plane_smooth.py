@@ -14,7 +14,7 @@ from stereocli.match.state import MatchState
 INF = np.float32(np.inf)
 
 
-def line_fit_reference(disp, image, radius, sigma_space, color_range, gate, vertical):
+def line_fit_reference(disp, image, radius, sigma_space, color_range, gate, vertical, clamp=True):
     """One pass of the kernel, pixel by pixel in float64: a weighted least-squares line through
     the gated neighbours on the row (or column), evaluated at the centre."""
     h, w = disp.shape
@@ -40,7 +40,8 @@ def line_fit_reference(disp, image, radius, sigma_space, color_range, gate, vert
             t, v, wt = np.array(ts, float), np.array(vs, float), np.array(ws, float)
             s, st, stt, sv, stv = wt.sum(), (wt * t).sum(), (wt * t * t).sum(), (wt * v).sum(), (wt * t * v).sum()
             det = s * stt - st * st
-            out[y, x] = d0 + ((stt * sv - st * stv) / det if det > 1e-4 * s * s else sv / s)
+            corr = (stt * sv - st * stv) / det if det > 1e-4 * s * s else sv / s
+            out[y, x] = d0 + (np.clip(corr, -gate, gate) if clamp else corr)
     return out
 
 
@@ -96,6 +97,23 @@ def test_colour_edges_stop_the_fit_within_the_gate():
     np.testing.assert_allclose(out, disp, atol=1e-5)
     blurred = run(disp, np.full(disp.shape, 80.0, np.float32), radius=6, gate=1.0)
     assert not np.allclose(blurred, disp, atol=1e-3)  # the same map with one colour is mixed
+
+
+def test_one_sided_fit_moves_a_pixel_by_at_most_the_gate():
+    # The last valid pixel of a row with eleven neighbours on one side, all within the 1 px gate:
+    # far ones 0.99 below, near ones 0.99 above. The least-squares line, evaluated at the end
+    # of the data, passes more than the gate above the pixel (leverage), so the correction
+    # stops at the gate instead of extrapolating.
+    d0 = 5.0
+    t = np.arange(-10, 1)
+    disp = np.full((1, 16), INF, np.float32)
+    disp[0, :11] = d0 + np.where(t <= -8, -0.99, 0.99)
+    disp[0, 10] = d0
+    image = np.zeros((1, 16, 1), np.float32)
+    unclamped = line_fit_reference(disp, image, 10, 1000.0, 20.0, 1.0, False, clamp=False)[0, 10] - d0
+    assert unclamped > 1.1  # the case really exercises the limit
+    out = kr.plane_smooth(disp, image, 10, 1000.0, 20.0, 1.0)
+    assert out[0, 10] == pytest.approx(d0 + 1.0, abs=1e-5)
 
 
 def test_holes_stay_holes_and_do_not_vote():

@@ -371,12 +371,14 @@ def _line_fit_pass(disp, image, radius: int, vertical: bool, sigma_space: float,
                 out[y, x] = d0[x]
                 continue
             # Least-squares line v = a·t + c; its value at t = 0 is c. The weighted mean where
-            # the neighbours sit on one side only or are too few to fix a slope.
+            # the neighbours sit on one side only or are too few to fix a slope. The correction
+            # is kept within the gate: a one-sided fit must not extrapolate a pixel away.
             det = s[x] * stt[x] - st[x] * st[x]
             if det > 1e-4 * s[x] * s[x]:
-                out[y, x] = d0[x] + (stt[x] * sv[x] - st[x] * stv[x]) / det
+                corr = (stt[x] * sv[x] - st[x] * stv[x]) / det
             else:
-                out[y, x] = d0[x] + sv[x] / s[x]
+                corr = sv[x] / s[x]
+            out[y, x] = d0[x] + min(max(corr, -gate), gate)
     return out
 
 
