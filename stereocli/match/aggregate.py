@@ -20,7 +20,7 @@ import numpy as np
 
 from ..errors import ConfigError
 from ..registry import param, register
-from .cost import check_odd_window
+from .cost import _channels, check_odd_window
 from .kernels import aggregation as ka
 from .kernels.cost import mask_invalid_right
 from .kernels.volume import CV_MAX_CHANNELS, box_filter_volume, wta_left
@@ -208,7 +208,7 @@ def cross(state: MatchState, p: CrossParams) -> None:
     long arms (up to ``max_arm`` = L1) in uniform regions, but beyond ``max_arm2`` = L2 only
     through colours within ``tau2`` of the pixel.
     """
-    image = np.ascontiguousarray(state.left if state.left.ndim == 3 else state.left[..., None], dtype=np.float32)
+    image = _channels(state.left)
     if p.tau2 > 0:
         arms = ka.cross_arms_two_threshold(image, float(p.tau), float(p.tau2), int(p.max_arm), int(p.max_arm2))
     else:

@@ -156,8 +156,8 @@ def variable_window(sat: np.ndarray, rad_y: np.ndarray, rad_x: np.ndarray, alpha
 ARM_STEPS = np.array([(0, -1), (0, 1), (-1, 0), (1, 0)], np.int64)
 
 
-def _planes(image: np.ndarray) -> np.ndarray:
-    # (H, W, C) -> (C, H, W) float32, so each channel's rows load contiguously.
+def channel_planes(image: np.ndarray) -> np.ndarray:
+    """(H, W, C) -> (C, H, W) float32 C-contiguous, so each channel's rows load contiguously."""
     return np.ascontiguousarray(np.moveaxis(image, 2, 0), dtype=np.float32)
 
 
@@ -238,7 +238,7 @@ def cross_arms_two_threshold(image: np.ndarray, tau1: float, tau2: float, max_le
     D_c = max over channels of the absolute difference. As in :func:`cross_arms`, every arm has
     length ≥ 1 where the image allows. ``image`` (H, W, C) float32.
     """
-    return _arms_rows(_planes(image), float(tau1), float(tau1), float(tau2), int(max_len1), int(max_len2))
+    return _arms_rows(channel_planes(image), float(tau1), float(tau1), float(tau2), int(max_len1), int(max_len2))
 
 
 def cross_arms(image: np.ndarray, tau: float, max_len: int) -> np.ndarray:
@@ -248,7 +248,7 @@ def cross_arms(image: np.ndarray, tau: float, max_len: int) -> np.ndarray:
     is at most ``max_len`` pixels (Zhang, Lu, Lafruit 2009, eq. 2); every arm has length ≥ 1
     where the image allows, so the support is never a single pixel. ``image`` (H, W, C) float32.
     """
-    return _arms_rows(_planes(image), float(tau), np.inf, np.inf, int(max_len), int(max_len))
+    return _arms_rows(channel_planes(image), float(tau), np.inf, np.inf, int(max_len), int(max_len))
 
 
 @njit(cache=True, parallel=True)

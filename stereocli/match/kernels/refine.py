@@ -10,6 +10,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from .aggregation import channel_planes
+
 INF = np.float32(np.inf)
 
 # 8 directions (dy, dx) searched for valid neighbours when interpolating holes.
@@ -391,10 +393,11 @@ def plane_smooth(disp: np.ndarray, image: np.ndarray, radius: int, sigma_space: 
     disparity is within ``gate`` px of its own (so a fit never mixes two surfaces across a
     depth edge), weighted by ``exp(−t²/2σs²)·max(0, 1 − ‖ΔI‖²/R²)²`` with ‖ΔI‖ the Euclidean
     colour distance in ``image`` ((H, W, C) float32, grey levels) and R = ``color_range``
-    (Tukey's biweight: close to a Gaussian of σ = R/2 near 0, exactly 0 beyond R). Two 1-D fits follow a slanted
-    plane like one 2-D fit at a fraction of its cost; on a fronto-parallel surface the result
-    is the gated, colour-weighted mean. ``disp`` (H, W) float32 px, +inf invalid (stays so).
+    (Tukey's biweight: close to a Gaussian of σ = R/2 near 0, exactly 0 beyond R). Each pass
+    moves a pixel by at most ``gate``. Two 1-D fits follow a slanted plane like one 2-D fit at
+    a fraction of its cost; on a fronto-parallel surface the result is the gated,
+    colour-weighted mean. ``disp`` (H, W) float32 px, +inf invalid (stays so).
     """
-    planes = np.ascontiguousarray(np.moveaxis(image, 2, 0), dtype=np.float32)  # (C, H, W): rows load contiguously
+    planes = channel_planes(image)
     out = _line_fit_pass(disp, planes, radius, False, sigma_space, color_range, gate)
     return _line_fit_pass(out, planes, radius, True, sigma_space, color_range, gate)
