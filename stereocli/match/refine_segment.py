@@ -12,15 +12,10 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from .cost import _channels
 from .kernels import segment as ks
 from ..registry import param, register
 from .state import MatchState
-
-
-def _colour(image: np.ndarray) -> np.ndarray:
-    """(H, W) or (H, W, C) float32 -> (H, W, C) float32 C-contiguous."""
-    image = image if image.ndim == 3 else image[..., None]
-    return np.ascontiguousarray(image, dtype=np.float32)
 
 
 @dataclass(frozen=True)
@@ -44,7 +39,7 @@ def local_consistency(state: MatchState, p: LocalConsistencyParams) -> None:
     winner's share of the votes.
     """
     disp, conf = ks.local_consistency(
-        np.ascontiguousarray(state.disparity, dtype=np.float32), _colour(state.left), _colour(state.right),
+        np.ascontiguousarray(state.disparity, dtype=np.float32), _channels(state.left), _channels(state.right),
         state.min_disp, state.ndisp, p.radius, float(p.gamma_s), float(p.gamma_c), float(p.gamma_t),
         bool(p.fill_invalid),
     )
@@ -81,7 +76,7 @@ def segment_image(image: np.ndarray, spatial_radius: int, colour_radius: float, 
     -------
     (H, W) int32 segment labels 0..n-1.
     """
-    img = _colour(image)
+    img = _channels(image)
     if img.shape[2] == 1:
         img = np.repeat(img, 3, axis=2)
     img8 = np.clip(np.rint(img[..., :3]), 0, 255).astype(np.uint8)
