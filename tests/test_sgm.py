@@ -143,3 +143,24 @@ def test_memory_estimate_reported():
     res = run(left, left, [], ndisp=8)
     # Tiny pair: the estimate is the runtime base (interpreter, libraries) plus a few MB.
     assert 0.3 < res.memory_estimate_gb < 0.5
+
+
+def test_memory_estimate_counts_integer_census_volume_at_its_size(tmp_path):
+    # Census Hamming distances go to SGM as uint8 (1 byte per cell) beside the uint16 sums
+    # (2 bytes): 3 bytes per cell. A float cost (AD) is 4 bytes plus SGM's uint8 quantised
+    # copy while both are alive: 5 bytes per cell. Checked on the per-cell growth of the
+    # estimate over 10 000 rows, so image buffers and the runtime base cancel out and SGM's
+    # O(W·D) row buffers are negligible.
+    from stereocli.config import build_config
+    from stereocli.match.pipeline import estimate_memory
+
+    def bytes_per_cell(sets, files=()):
+        config = build_config(list(files), sets)
+        return (estimate_memory(config, 10000, 100, 200) - estimate_memory(config, 10000, 100, 100)) / (10000 * 100 * 100)
+
+    assert bytes_per_cell([]) == pytest.approx(3.0, rel=0.01)
+    assert bytes_per_cell(["cost.name=ad"]) == pytest.approx(5.0, rel=0.01)
+    # Aggregation between cost and SGM needs float costs: no integer shortcut.
+    boxed = tmp_path / "boxed.yaml"
+    boxed.write_text("aggregation: [{name: box}]\n")
+    assert bytes_per_cell([], [str(boxed)]) >= 5.0

@@ -373,6 +373,11 @@ def census_cost(state: MatchState, p: CensusParams) -> None:
     state.cost = kc.hamming_volume(left, right, state.min_disp, state.ndisp, state.cost_max, dtype)
 
 
+# With ``integer_cost_ok`` the Hamming distances stay uint8 (1 byte per cell; read by the
+# memory planner, stereocli.match.pipeline.volume_copies).
+census_cost.integer_cost_itemsize = 1
+
+
 @dataclass(frozen=True)
 class RankParams:
     window: tuple[int, int] = param((7, 7), "rank-transform window (height, width), odd", unit="px", low=3, high=31)

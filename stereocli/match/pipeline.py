@@ -64,8 +64,15 @@ def volume_copies(config: PipelineConfig) -> float:
 
     Each stage function may carry a ``volume_copies`` attribute: the extra volumes it holds
     beside its input (float32 units, so a uint16 copy counts 0.5). Cost stages have no input
-    volume and default to 0 (just their output); other stages default to 1.
+    volume and default to 0 (just their output); other stages default to 1. When the cost
+    stage can leave an integer volume (``integer_cost_itemsize``: bytes per cell) and it goes
+    straight to an optimizer that accepts one (``accepts_integer_cost``), that volume counts
+    at its own size and the optimizer's extra is its ``integer_volume_copies``.
     """
+    optimizer = config.optimizer.stage.func
+    itemsize = getattr(config.cost.stage.func, "integer_cost_itemsize", None)
+    if itemsize and not config.aggregation and getattr(optimizer, "accepts_integer_cost", False):
+        return itemsize / 4.0 + getattr(optimizer, "integer_volume_copies", getattr(optimizer, "volume_copies", 1.0))
     calls = [config.cost, *config.aggregation, config.optimizer]
     extra = [getattr(c.stage.func, "volume_copies", 0.0 if c.stage.kind == "cost" else 1.0) for c in calls]
     return 1.0 + max(extra)

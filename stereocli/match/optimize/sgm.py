@@ -3,9 +3,10 @@
 The cost volume is quantised to uint8 (uint16 when a finer scale is needed), the float volume
 is released, and the path costs of 2, 4, 8 or 16 directions are summed into a uint16 volume
 ``S`` that replaces ``state.cost`` (so sub-pixel fitting, uniqueness, confidence and the
-right-view disparity work on the optimised costs). Peak memory is about ``H·W·D·5`` bytes: the
-float costs plus the uint8 copy while quantising, then the uint8 copy plus the forward and
-backward uint16 sums, plus ``O(W·D)`` row buffers (``buffer_bytes``).
+right-view disparity work on the optimised costs). Peak memory is about ``H·W·D·5`` bytes for
+float costs (the float volume plus the uint8 copy while quantising; afterwards the uint8 copy
+plus the uint16 sums), ``H·W·D·3`` for integer costs such as census (used as they are, no
+copy), plus ``O(W·D)`` row buffers (``buffer_bytes``).
 """
 
 from __future__ import annotations
@@ -96,12 +97,15 @@ def sgm(state: MatchState, p: SGMParams) -> None:
 # while the float input is alive (0.25); afterwards uint8 + 2 × uint16 = 1.25 in total, the
 # same peak. (levels > 255 use a uint16 copy: 0.5.)
 sgm.volume_copies = 0.25
-# Integer costs (census) are used as they are: no float volume, no quantised copy.
+# Integer costs (census) are used as they are: no float volume, no quantised copy; only the
+# uint16 sums beside them.
 sgm.accepts_integer_cost = True
+sgm.integer_volume_copies = 0.5
 
 
 def _buffer_bytes(p: SGMParams, width: int, ndisp: int) -> float:
-    """Path-cost row buffers of both passes: 3 rows × directions × (D + 2) int16 each."""
+    """Path-cost row buffers of both passes: 3 rows × directions × (D + 2) int16 each (plus
+    their minima and penalties)."""
     nk = len(ks.DOWN_DIRECTIONS[p.paths])
     return 2 * (3 * width * nk * (ndisp + 2) * 2 + 4 * width * nk * 3)
 
