@@ -184,7 +184,35 @@ def test_local_consistency_kernel_matches_reference_on_random_maps():
     right = rng.integers(0, 256, (h, w, 3)).astype(np.float32)
     disp = (rng.uniform(2, 4, (h, w)) + np.where(np.arange(w) > 10, 5.0, 0.0)).astype(np.float32)
     disp[rng.random((h, w)) < 0.1] = np.inf
-    got, _ = ks.local_consistency(disp, left, right, 0, 12, 3, 3.0, 12.0, 12.0, False)
+    got, _ = ks.local_consistency(disp, left, right, 0, 12, 3, 3.0, 12.0, 12.0, False, np.ones(disp.shape, bool))
     want = local_consistency_reference(disp, left, right, 0, 12, 3, 3.0, 12.0, 12.0)
     np.testing.assert_array_equal(np.isfinite(got), np.isfinite(want))
     np.testing.assert_allclose(got[np.isfinite(got)], want[np.isfinite(want)], rtol=0, atol=1e-4)
+
+
+def test_local_consistency_min_spread_votes_only_near_discontinuities():
+    # Two noisy flat surfaces (3.3 and 9.7 px ± 0.2) meeting at column 20: with min_spread 2 only pixels
+    # whose 7×7 window reaches across the edge (columns 17..22) are voted on; the rest keep
+    # their exact input value and confidence 1. The voted pixels get what the full vote gives.
+    from stereocli.match.refine_segment import LocalConsistencyParams, local_consistency
+
+    rng = np.random.default_rng(3)
+    h, w = 12, 40
+    disp = (np.where(np.arange(w) < 20, 3.3, 9.7) + rng.uniform(-0.2, 0.2, (h, w))).astype(np.float32)
+    left = rng.integers(0, 256, (h, w, 3)).astype(np.float32)
+    right = rng.integers(0, 256, (h, w, 3)).astype(np.float32)
+
+    def run(min_spread):
+        state = MatchState(left=left, right=right, min_disp=0, ndisp=16)
+        state.disparity = disp.copy()
+        local_consistency(state, LocalConsistencyParams(radius=3, min_spread=min_spread))
+        return state.disparity, state.confidence
+
+    full, _ = run(0.0)
+    banded, conf = run(2.0)
+    band = np.zeros(w, bool)
+    band[17:23] = True
+    np.testing.assert_array_equal(banded[:, ~band], disp[:, ~band])
+    assert np.all(conf[:, ~band] == 1.0)
+    np.testing.assert_array_equal(banded[:, band], full[:, band])
+    assert not np.array_equal(full[:, ~band], disp[:, ~band])  # the full vote does change them

@@ -311,7 +311,7 @@ def replace_by_planes(disp, labels, planes, use_plane, outlier: float, replace_a
 
 @njit(cache=True, parallel=True)
 def local_consistency(disp, left, right, min_disp: int, ndisp: int, radius: int,
-                      gamma_s: float, gamma_c: float, gamma_t: float, fill_invalid: bool):
+                      gamma_s: float, gamma_c: float, gamma_t: float, fill_invalid: bool, todo):
     """Locally consistent disparity: every pixel takes the hypothesis its neighbours support most.
 
     Each valid neighbour g of f within ``radius`` votes for its disparity d_g with plausibility
@@ -319,8 +319,9 @@ def local_consistency(disp, left, right, min_disp: int, ndisp: int, radius: int,
     proximity, colour similarity of f and g in the left image, and colour similarity of the
     points both would match in the right image under d_g (Mattoccia 2009, "A locally global
     approach to stereo correspondence", eq. 2–4). Votes are binned per integer disparity; f
-    takes the weighted mean disparity of the winning bin. Returns (disparity, confidence =
-    winning share of the vote mass).
+    takes the weighted mean disparity of the winning bin. Only pixels where ``todo`` (H, W)
+    bool is set are voted on; the others keep their disparity with confidence 1. Returns
+    (disparity, confidence = winning share of the vote mass).
     """
     h, w, c = left.shape
     out = np.full((h, w), INF, np.float32)
@@ -346,6 +347,10 @@ def local_consistency(disp, left, right, min_disp: int, ndisp: int, radius: int,
         # (a window holds at most side² votes; the range may be hundreds of bins).
         touched = np.empty(side * side, np.int64)
         for x in range(w):
+            if not todo[y, x]:
+                out[y, x] = disp[y, x]
+                conf[y, x] = 1.0
+                continue
             if not fill_invalid and not np.isfinite(disp[y, x]):
                 continue
             n_touched = 0
