@@ -61,6 +61,8 @@ def test_every_method_runs_wta_lr_check_then_hole_filling(bench, subpixel):
         fills = [i for i, s in enumerate(stages) if s.fills_holes]
         assert fills and names.count("lr_check") == 1, (method, names)
         assert names.index("lr_check") < fills[0], (method, names)  # fill the holes the check leaves
+        # the check decides on the WTA winners, not on the sub-pixel values (they run first)
+        assert config.refinement[names.index("lr_check")].params.compare == "integer", method
         assert bool(SUBPIXEL_STEPS & set(names)) == subpixel, (method, names)
 
 

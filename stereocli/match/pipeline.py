@@ -22,6 +22,13 @@ variants instead (timing key ``cost.<name>+optimizer.wta``). Otherwise, e.g. wit
 give bit-identical maps (``tests/test_fused_sad.py``); set :data:`FUSED` to False to force the
 volume path. The memory estimate and strip plan ignore the fusion (they stay those of the
 volume path, so the plan does not depend on it).
+
+Integer winners: the volume refinements (``subpixel``) run before every map stage, so a map
+stage sees sub-pixel maps. A stage that wants the optimizer's integer maps instead says so
+with a ``keeps_integer(params) -> bool`` attribute on its function (``lr_check`` with
+``compare: integer``); the pipeline then copies ``disparity``/``disparity_right`` into
+``integer_disparity``/``integer_disparity_right`` right after the optimizer, before the
+volume refinements, and stitches them with the maps (two extra (H, W) float32 maps).
 """
 
 from __future__ import annotations
@@ -142,6 +149,8 @@ class StripResult:
     disparity: np.ndarray  # (y1 - y0, W) px, +inf invalid
     disparity_right: np.ndarray | None = None
     confidence: np.ndarray | None = None
+    integer_disparity: np.ndarray | None = None  # the optimizer's maps, if ``state.keep_integer``
+    integer_disparity_right: np.ndarray | None = None
     extras: dict = field(default_factory=dict)
     timings: dict[str, float] = field(default_factory=dict)
 
@@ -149,6 +158,12 @@ class StripResult:
 def _refinements(config: PipelineConfig, keep_invalid: bool) -> list:
     # --keep-invalid drops every hole-filling stage (registered with fills_holes=True).
     return [c for c in config.refinement if not (keep_invalid and c.stage.fills_holes)]
+
+
+def _keeps_integer(refinements: list) -> bool:
+    """True when some refinement reads the optimizer's integer maps (a ``keeps_integer(params)``
+    attribute on its function that returns True, e.g. ``lr_check`` with ``compare: integer``)."""
+    return any(getattr(c.stage.func, "keeps_integer", lambda params: False)(c.params) for c in refinements)
 
 
 def prepare(
@@ -189,6 +204,7 @@ def prepare(
         right_valid=_as_valid(right_valid, shape, "right"),
         want_right=want_right,
         want_confidence=want_confidence,
+        keep_integer=_keeps_integer(refinements),
         threads=config.runtime.threads,
     )
     for call in config.preprocess:
@@ -225,7 +241,8 @@ def run_strip(sub: MatchState, config: PipelineConfig, y0: int, y1: int, *,
     whole = keep.start == 0 and keep.stop == sub.shape[0]
     crop = lambda m: None if m is None else (m if whole else np.ascontiguousarray(m[keep]))  # noqa: E731
     return StripResult(y0, y1, crop(sub.disparity), crop(sub.disparity_right) if sub.want_right else None,
-                       crop(sub.confidence), sub.extras, timings)
+                       crop(sub.confidence), crop(sub.integer_disparity), crop(sub.integer_disparity_right),
+                       sub.extras, timings)
 
 
 def finish(prepared: PreparedPair, results: list[StripResult], config: PipelineConfig) -> MatchResult:
@@ -238,10 +255,17 @@ def finish(prepared: PreparedPair, results: list[StripResult], config: PipelineC
     disparity = np.empty(shape, np.float32)
     disparity_right = np.empty(shape, np.float32) if state.want_right else None
     confidence = None
+    integer = {"integer_disparity": None, "integer_disparity_right": None}
     for r in results:
         disparity[r.y0:r.y1] = r.disparity
         if state.want_right:
             disparity_right[r.y0:r.y1] = r.disparity_right
+        for key in integer:
+            part = getattr(r, key)
+            if part is not None:
+                if integer[key] is None:
+                    integer[key] = np.empty(shape, np.float32)
+                integer[key][r.y0:r.y1] = part
         if r.confidence is not None:
             if confidence is None:
                 confidence = np.zeros(shape, np.float32)
@@ -253,6 +277,7 @@ def finish(prepared: PreparedPair, results: list[StripResult], config: PipelineC
     map_stages = [c for c in _refinements(config, prepared.keep_invalid) if not c.stage.needs_cost]
     state.cost = None
     state.disparity, state.disparity_right, state.confidence = disparity, disparity_right, confidence
+    state.integer_disparity, state.integer_disparity_right = integer.values()
     for call in map_stages:
         _timed(timings, f"refinement.{call.stage.name}", call.stage.func, state, call.params)
     clear_invalid_left(state)
@@ -325,12 +350,13 @@ def match_pair(
 def _strip_state(state: MatchState, a: int, b: int) -> MatchState:
     if a == 0 and b == state.shape[0]:
         return MatchState(state.left, state.right, state.min_disp, state.ndisp, state.left_valid,
-                          state.right_valid, want_right=state.want_right,
+                          state.right_valid, want_right=state.want_right, keep_integer=state.keep_integer,
                           want_confidence=state.want_confidence, threads=state.threads, extras=state.extras)
     crop = lambda m: None if m is None else np.ascontiguousarray(m[a:b])  # noqa: E731
     return MatchState(crop(state.left), crop(state.right), state.min_disp, state.ndisp,
                       crop(state.left_valid), crop(state.right_valid), want_right=state.want_right,
-                      want_confidence=state.want_confidence, row_offset=a, threads=state.threads,
+                      keep_integer=state.keep_integer, want_confidence=state.want_confidence, row_offset=a,
+                      threads=state.threads,
                       extras=dict(state.extras))
 
 
@@ -360,6 +386,7 @@ def _run_volume_stages(sub: MatchState, config: PipelineConfig, volume_stages, t
         fused(sub, call.params, bool(volume_stages))  # winner costs only if a refinement reads them
         key = f"cost.{call.stage.name}+optimizer.wta"
         timings[key] = timings.get(key, 0.0) + time.perf_counter() - t0
+        _keep_integer_maps(sub)
         for c in volume_stages:
             _timed(timings, f"refinement.{c.stage.name}", c.stage.func.on_winner_costs, sub, c.params)
         sub.winner = None
@@ -378,9 +405,17 @@ def _run_volume_stages(sub: MatchState, config: PipelineConfig, volume_stages, t
         t0 = time.perf_counter()
         sub.disparity_right = wta_right(sub.cost, sub.min_disp, np.float32(sub.cost_max))
         timings["optimizer.right_view"] = timings.get("optimizer.right_view", 0.0) + time.perf_counter() - t0
+    _keep_integer_maps(sub)
     for call in volume_stages:
         _timed(timings, f"refinement.{call.stage.name}", call.stage.func, sub, call.params)
     sub.cost = None
+
+
+def _keep_integer_maps(sub: MatchState) -> None:
+    if sub.keep_integer:  # copies: the volume refinements may edit the maps in place
+        sub.integer_disparity = sub.disparity.copy()
+        if sub.disparity_right is not None:
+            sub.integer_disparity_right = sub.disparity_right.copy()
 
 
 def _timed(timings: dict, key: str, func, state: MatchState, params) -> None:

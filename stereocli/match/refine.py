@@ -52,6 +52,7 @@ subpixel.on_winner_costs = _subpixel_on_winner_costs
 @dataclass(frozen=True)
 class LRCheckParams:
     max_diff: float = param(1.0, "largest accepted |d_left - d_right| at corresponding pixels", unit="px", low=0.0, high=100.0)
+    compare: str = param("final", "which maps are checked: 'final' = the maps as refined so far (after subpixel); 'integer' = the optimizer's integer winners, before any sub-pixel step (Hosni et al. 2013), the rejected pixels being removed from the current map", choices=("final", "integer"))
 
 
 @register("refinement", "lr_check", LRCheckParams, needs_right=True)
@@ -60,8 +61,24 @@ def lr_check(state: MatchState, p: LRCheckParams) -> None:
 
     Removes occlusions and most mismatches; the right disparity comes from the same volume
     (Hirschmüller 2008, §2.5), so it costs one extra pass, not a second match.
+
+    ``compare: final`` checks the maps as they are when the stage runs, i.e. after ``subpixel``
+    (volume refinements run before map stages). ``compare: integer`` decides on the optimizer's
+    integer winners instead, as the cost-volume filtering papers do (Rhemann et al. 2011,
+    Hosni et al. 2013: WTA, check, then fill) and removes the rejected pixels from the current
+    (sub-pixel) map. Each sub-pixel fit moves a winner by up to 0.5 px, so after both fits
+    winners 2 px apart can come within 1 px of each other and pass a 1 px check; on integers
+    the test counts whole winners. The pipeline keeps the integer maps for it (two (H, W)
+    float32 copies). Called outside the pipeline without kept maps, it compares the current ones.
     """
+    left, right = state.integer_disparity, state.integer_disparity_right
+    if p.compare == "integer" and left is not None and right is not None:
+        state.disparity = km.lr_check_onto(left, right, float(p.max_diff), state.disparity)
+        return
     state.disparity = km.lr_check(state.disparity, state.disparity_right, float(p.max_diff))
+
+
+lr_check.keeps_integer = lambda p: p.compare == "integer"  # read by stereocli.match.pipeline
 
 
 @dataclass(frozen=True)

@@ -19,7 +19,11 @@ mutates ``state``:
   WTA, uniqueness, confidence, ``mask_invalid_right``) accepts float32 and uint16.
 * refinement: edits ``disparity`` (and ``disparity_right`` / ``confidence``); stages
   registered with ``needs_cost=True`` run while ``cost`` is still available (inside each
-  row strip), the others on the full stitched map.
+  row strip), the others on the full stitched map. When some refinement wants the
+  optimizer's own integer winners (``keep_integer``, e.g. ``lr_check`` with
+  ``compare: integer``), the pipeline copies ``disparity`` / ``disparity_right`` into
+  ``integer_disparity`` / ``integer_disparity_right`` right after the optimizer (and the right view), before any
+  volume refinement moves them, and stitches them like the maps.
 
 Fused cost + WTA (see :mod:`stereocli.match.pipeline`): when a cost stage offers a
 ``fused_wta(state, params, winner: bool)`` function, the pipeline is ``cost → wta`` with no
@@ -65,7 +69,10 @@ class MatchState:
     disparity: np.ndarray | None = None  # (H, W) float32 px, +inf invalid
     disparity_right: np.ndarray | None = None  # (H, W) float32 px, right-referenced, +inf invalid
     confidence: np.ndarray | None = None  # (H, W) float32 in [0, 1]
+    integer_disparity: np.ndarray | None = None  # (H, W) float32: ``disparity`` as the optimizer left it (if keep_integer)
+    integer_disparity_right: np.ndarray | None = None  # (H, W) float32: the same for ``disparity_right``
     want_right: bool = False  # some later stage or output needs disparity_right
+    keep_integer: bool = False  # keep the optimizer's maps in ``integer_disparity``/``integer_disparity_right``
     integer_cost_ok: bool = False  # the cost stage may leave a uint8/uint16 volume
     want_confidence: bool = False  # a confidence map is wanted (else confidence stages skip)
     row_offset: int = 0

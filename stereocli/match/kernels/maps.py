@@ -8,15 +8,24 @@ from numba import njit, prange
 INF = np.float32(np.inf)
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True)
 def lr_check(disp_left: np.ndarray, disp_right: np.ndarray, max_diff: float) -> np.ndarray:
     """Invalidate left disparities that the right view does not confirm.
 
     Left pixel x with disparity d maps to right pixel ``xr = round(x - d)``; it is kept when
     ``|d - disp_right[y, xr]| <= max_diff``. Returns a new float32 map with +inf where rejected.
     """
+    return lr_check_onto(disp_left, disp_right, max_diff, disp_left)
+
+
+@njit(cache=True, parallel=True)
+def lr_check_onto(disp_left: np.ndarray, disp_right: np.ndarray, max_diff: float,
+                  target: np.ndarray) -> np.ndarray:
+    """A copy of ``target`` (H, W) with +inf where the pair ``disp_left``/``disp_right`` fails
+    the check of :func:`lr_check` (e.g. the check decided on the integer winners, applied to
+    the sub-pixel map); pixels where ``disp_left`` is invalid keep their ``target`` value."""
     h, w = disp_left.shape
-    out = disp_left.copy()
+    out = target.copy()
     for y in prange(h):
         for x in range(w):
             d = disp_left[y, x]
