@@ -37,6 +37,14 @@ def region_vote(disp: np.ndarray, arms: np.ndarray, min_disp: int, ndisp: int, m
     h, w = disp.shape
     out = disp.copy()
     half = (h + 1) // 2
+    # Each pixel's vote, computed once (a pixel is in the regions of up to ~300 outliers): its
+    # 1-px bin, or −1 for an outlier or a disparity outside the range.
+    bins = np.empty((h, w), np.int32)
+    for y in prange(h):
+        for x in range(w):
+            d = disp[y, x]
+            k = int(np.floor(d + 0.5)) - min_disp if np.isfinite(d) else -1
+            bins[y, x] = k if 0 <= k < ndisp else -1
     for i in prange(h):
         # Rows interleaved from both halves of the image: outliers cluster (occluded bands,
         # textureless areas), and prange gives each thread one contiguous block of i.
@@ -50,16 +58,14 @@ def region_vote(disp: np.ndarray, arms: np.ndarray, min_disp: int, ndisp: int, m
             sums[:] = 0.0
             total = 0
             for yy in range(y - arms[y, x, 2], y + arms[y, x, 3] + 1):
+                row_bins = bins[yy]
+                row_disp = disp[yy]
                 for xx in range(x - arms[yy, x, 0], x + arms[yy, x, 1] + 1):
-                    d = disp[yy, xx]
-                    if not np.isfinite(d):
-                        continue
-                    k = int(np.floor(d + 0.5)) - min_disp
-                    if k < 0 or k >= ndisp:
-                        continue
-                    hist[k] += 1
-                    sums[k] += d
-                    total += 1
+                    k = row_bins[xx]
+                    if k >= 0:
+                        hist[k] += 1
+                        sums[k] += row_disp[xx]
+                        total += 1
             if total < min_votes or total == 0:
                 continue
             best = 0
