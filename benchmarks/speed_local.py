@@ -46,7 +46,7 @@ AGGREGATIONS = {
     "multiple_windows": ("ad", {"window": [7, 7], "windows": 9}),
     "variable_window": ("tad", {}),
     "cross": ("tad", {}),
-    "adaptive_weights": ("ad_census", {}),
+    "adaptive_weights": ("color_gradient", {}),
     "segment_support": ("tad", {}),
     "fast_bilateral": ("tad", {}),
     "guided_filter": ("color_gradient", {}),

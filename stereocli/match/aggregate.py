@@ -255,8 +255,10 @@ def adaptive_weights(state: MatchState, p: AdaptiveWeightsParams) -> None:
     hypothesised disparity), and the aggregate is Σ w_L·w_R·e / Σ w_L·w_R (eq. 5). Accurate
     at depth edges, slow: O(window² · D) per pixel (Teddy, D = 64: a few seconds on 2 cores).
     Paper settings: 35×35, γ_c = 5, γ_p = 17.5 on truncated AD; with OpenCV's float CIELab
-    (L in [0, 100]) γ_c = 10 and the ``ad_census`` cost score clearly better on the
-    Middlebury 2001/2003 scenes (benchmarks/local_methods.py), hence the default.
+    (L in [0, 100]) γ_c = 10 scores clearly better on the Middlebury 2001/2003 scenes, hence
+    the default. Pair it with ``color_gradient`` (``tau_color: 30``, the cost of Julià &
+    Monasse's IPOL implementation): the gradient term keeps weakly textured supports from
+    locking onto nearby periodic texture (benchmarks/local_methods.py).
     """
     r = p.window // 2
     off_y, off_x = _window_offsets(r, r)
