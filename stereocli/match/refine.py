@@ -202,7 +202,6 @@ def bilateral(state: MatchState, p: BilateralParams) -> None:
                                          float(p.sigma_space), float(p.sigma_color))
 
 
-
 @dataclass(frozen=True)
 class PlaneSmoothParams:
     radius: int = param(10, "half length of the row and column segments fitted", unit="px", low=1, high=50)

@@ -58,9 +58,9 @@ def _discontinuity_windows(disp: np.ndarray, radius: int, min_spread: float, fil
     """(H, W) bool: the (2·radius + 1)² window around the pixel spans more than ``min_spread``
     px of valid disparity (all True for ``min_spread`` 0); invalid pixels too with
     ``fill_invalid``."""
-    valid = np.isfinite(disp)
     if min_spread <= 0:
         return np.ones(disp.shape, bool)
+    valid = np.isfinite(disp)
     kernel = np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)
     high = cv2.dilate(np.where(valid, disp, -np.inf).astype(np.float32), kernel)
     low = cv2.erode(np.where(valid, disp, np.inf).astype(np.float32), kernel)
