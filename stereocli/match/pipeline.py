@@ -360,7 +360,15 @@ def _strip_state(state: MatchState, a: int, b: int) -> MatchState:
                       extras=dict(state.extras))
 
 
-def fused_cost_wta(config: PipelineConfig, volume_stages: list, want_right: bool) -> Callable | None:
+def _needs_second_best(call, state: MatchState | None) -> bool:
+    # A volume stage reading ``winner.second`` (the best cost beyond ±1 of the winner), which
+    # only a windowed SGM keeps; without a state, any stage that may read it counts.
+    needs = getattr(call.stage.func, "needs_second_best", None)
+    return needs is not None and (state is None or needs(state, call.params))
+
+
+def fused_cost_wta(config: PipelineConfig, volume_stages: list, want_right: bool,
+                   state: MatchState | None = None) -> Callable | None:
     """The cost stage's fused cost + WTA function if this strip may skip the volume, else None.
 
     Conditions (module docstring): :data:`FUSED`, a ``fused_wta`` attribute on the cost stage,
@@ -373,14 +381,15 @@ def fused_cost_wta(config: PipelineConfig, volume_stages: list, want_right: bool
     names = [c.stage.name for c in volume_stages]
     if (not FUSED or fused is None or config.aggregation or config.optimizer.stage.name != "wta"
             or want_right or len(set(names)) != len(names)
-            or any(not hasattr(c.stage.func, "on_winner_costs") for c in volume_stages)):
+            or any(not hasattr(c.stage.func, "on_winner_costs") or _needs_second_best(c, state)
+                   for c in volume_stages)):
         return None
     return fused
 
 
 def _run_volume_stages(sub: MatchState, config: PipelineConfig, volume_stages, timings) -> None:
     call = config.cost
-    fused = fused_cost_wta(config, volume_stages, sub.want_right)
+    fused = fused_cost_wta(config, volume_stages, sub.want_right, sub)
     if fused is not None:
         t0 = time.perf_counter()
         fused(sub, call.params, bool(volume_stages))  # winner costs only if a refinement reads them
@@ -394,21 +403,29 @@ def _run_volume_stages(sub: MatchState, config: PipelineConfig, volume_stages, t
     # A cost stage may leave a uint8/uint16 volume when its consumer says it accepts one.
     sub.integer_cost_ok = not config.aggregation and getattr(config.optimizer.stage.func,
                                                              "accepts_integer_cost", False)
+    sub.cost_call = call
     _timed(timings, f"cost.{call.stage.name}", call.stage.func, sub, call.params)
     if sub.right_valid is not None:
         mask_invalid_right(sub.cost, sub.right_valid, sub.min_disp, np.float32(sub.cost_max))
     for call in config.aggregation:
         _timed(timings, f"aggregation.{call.stage.name}", call.stage.func, sub, call.params)
     call = config.optimizer
+    # An optimizer that never builds the whole volume (SGM's coarse-to-fine search) leaves
+    # ``winner`` instead when every volume refinement can work from it.
+    sub.volume_needed = any(not hasattr(c.stage.func, "on_winner_costs") for c in volume_stages)
+    sub.want_second = any(_needs_second_best(c, sub) for c in volume_stages)
     _timed(timings, f"optimizer.{call.stage.name}", call.stage.func, sub, call.params)
     if sub.want_right and sub.disparity_right is None:
         t0 = time.perf_counter()
         sub.disparity_right = wta_right(sub.cost, sub.min_disp, np.float32(sub.cost_max))
         timings["optimizer.right_view"] = timings.get("optimizer.right_view", 0.0) + time.perf_counter() - t0
     _keep_integer_maps(sub)
+    on_winner = sub.cost is None and sub.winner is not None
     for call in volume_stages:
-        _timed(timings, f"refinement.{call.stage.name}", call.stage.func, sub, call.params)
+        func = call.stage.func.on_winner_costs if on_winner else call.stage.func
+        _timed(timings, f"refinement.{call.stage.name}", func, sub, call.params)
     sub.cost = None
+    sub.winner = None
 
 
 def _keep_integer_maps(sub: MatchState) -> None:

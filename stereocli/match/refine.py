@@ -38,12 +38,15 @@ def subpixel(state: MatchState, p: SubpixelParams) -> None:
 
 
 def _subpixel_on_winner_costs(state: MatchState, p: SubpixelParams) -> None:
-    # Fused cost + WTA path (stereocli.match.pipeline): the same fit on the costs kept around
-    # each winner (no right view on that path).
+    # No volume (fused cost + WTA, windowed SGM; stereocli.match.pipeline): the same fit on the
+    # costs kept around each winner, for the right view too when they were kept.
     from .optimize.wta import subpixel_on_winner
 
-    state.disparity = subpixel_on_winner(state.winner, state.disparity, state.min_disp, state.ndisp,
-                                         p.method == "equiangular")
+    equi = p.method == "equiangular"
+    state.disparity = subpixel_on_winner(state.winner, state.disparity, state.min_disp, state.ndisp, equi)
+    if state.disparity_right is not None and state.winner.costs_right is not None:
+        state.disparity_right = subpixel_on_winner(state.winner, state.disparity_right, state.min_disp, state.ndisp,
+                                                   equi, right=True)
 
 
 subpixel.on_winner_costs = _subpixel_on_winner_costs
@@ -116,6 +119,16 @@ def uniqueness(state: MatchState, p: UniquenessParams) -> None:
     state.disparity = kr.uniqueness(state.cost, state.disparity, state.min_disp, float(p.ratio))
 
 
+def _uniqueness_on_winner_costs(state: MatchState, p: UniquenessParams) -> None:
+    # Windowed SGM: the best cost beyond ±1 of the winner, among the hypotheses searched.
+    w = state.winner
+    state.disparity = kr.uniqueness_from_second(w.costs[..., 1], w.second, state.disparity, float(p.ratio))
+
+
+uniqueness.on_winner_costs = _uniqueness_on_winner_costs
+uniqueness.needs_second_best = lambda state, params: True
+
+
 @dataclass(frozen=True)
 class ConfidenceParams:
     lr_scale: float = param(1.0, "left-right disagreement at which the LR factor falls to 1/e", unit="px", low=0.01, high=100.0)
@@ -135,6 +148,21 @@ def confidence(state: MatchState, p: ConfidenceParams) -> None:
     right = state.disparity_right if state.disparity_right is not None else np.zeros((0, 0), np.float32)
     state.confidence = kr.confidence(state.cost, state.disparity, right, state.min_disp,
                                      float(p.lr_scale), float(p.margin_scale))
+
+
+def _confidence_on_winner_costs(state: MatchState, p: ConfidenceParams) -> None:
+    # Windowed SGM: uniqueness from the best cost beyond ±1 of the winner among the hypotheses
+    # searched (the coarse-to-fine window), the LR term as on the volume.
+    if not state.want_confidence:
+        return
+    w = state.winner
+    right = state.disparity_right if state.disparity_right is not None else np.zeros((0, 0), np.float32)
+    state.confidence = kr.confidence_from_second(w.costs[..., 1], w.second, state.disparity, right,
+                                                 float(p.lr_scale), float(p.margin_scale))
+
+
+confidence.on_winner_costs = _confidence_on_winner_costs
+confidence.needs_second_best = lambda state, params: state.want_confidence
 
 
 @dataclass(frozen=True)

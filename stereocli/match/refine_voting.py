@@ -34,6 +34,7 @@ class RegionVotingParams:
     min_votes: int = param(20, "τS: least number of reliable pixels in the support region", low=1, high=100000)
     min_share: float = param(0.4, "τH: least share of the votes in the winning 1-px bin", low=0.0, high=1.0)
     iterations: int = param(5, "voting passes (outliers filled in one pass vote in the next)", low=1, high=50)
+    stride: int = param(1, "sample the support every stride-th row and pixel (about stride² fewer votes; min_votes stays a full-region count)", low=1, high=8)
 
     def __post_init__(self):
         if self.max_arm2 > self.max_arm:
@@ -58,7 +59,7 @@ def region_voting(state: MatchState, p: RegionVotingParams) -> None:
                                        int(p.max_arm2))
     disp = np.ascontiguousarray(state.disparity, dtype=np.float32)
     for _ in range(p.iterations):
-        new = kv.region_vote(disp, arms, state.min_disp, state.ndisp, int(p.min_votes), float(p.min_share))
+        new = kv.region_vote(disp, arms, state.min_disp, state.ndisp, int(p.min_votes), float(p.min_share), int(p.stride))
         done = np.array_equal(np.isfinite(new), np.isfinite(disp))
         disp = new
         if done:

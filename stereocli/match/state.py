@@ -47,10 +47,13 @@ import numpy as np
 
 @dataclass
 class WinnerCosts:
-    """What a fused cost + WTA pass keeps of the volume it never stores."""
+    """What a fused cost + WTA pass (or a windowed SGM) keeps of the volume it never stores."""
 
     disparity: np.ndarray  # (H, W) float32 WTA disparities min_disp + k (integer-valued, +inf invalid)
     costs: np.ndarray  # (H, W, 3) float32 volume entries at k - 1, k, k + 1 (cost_max beyond [0, D))
+    costs_right: np.ndarray | None = None  # (H, W, 3) the same for the right-view winners (diagonal neighbours)
+    disparity_right: np.ndarray | None = None  # (H, W) float32 right-view winners the costs belong to
+    second: np.ndarray | None = None  # (H, W) float32 best cost more than 1 hypothesis from the winner (+inf if none)
 
 
 @dataclass
@@ -78,6 +81,9 @@ class MatchState:
     row_offset: int = 0
     threads: int = 0  # 0 = numba default
     extras: dict = field(default_factory=dict)  # stage-to-stage data (e.g. raw costs for MI)
+    cost_call: object | None = None  # the configured cost StageCall (an optimizer may rerun it at a coarser scale)
+    volume_needed: bool = True  # a later stage reads ``cost`` itself (else ``winner`` may stand in for it)
+    want_second: bool = False  # a later stage reads ``winner.second`` (uniqueness, confidence)
 
     @property
     def shape(self) -> tuple[int, int]:

@@ -261,12 +261,14 @@ def sad_wta(left: np.ndarray, right: np.ndarray, right_valid: np.ndarray, min_di
 
 @njit(cache=True, parallel=True)
 def subpixel_winner(wdisp: np.ndarray, wcosts: np.ndarray, disp: np.ndarray, min_disp: int, ndisp: int,
-                    equiangular: bool):
+                    equiangular: bool, left: bool = True):
     """:func:`~stereocli.match.kernels.volume.subpixel_left` on the winner costs.
 
     Same rule (fit through the costs at k − 1, k, k + 1 with ``k = int(disp) − min_disp``, ends
     of the range and neighbours outside the image keep the integer). Returns ``(refined,
     missing)``; ``missing`` counts pixels whose ``k`` is not the WTA winner (left unchanged).
+    ``left=False`` for a right-view map, whose neighbours outside the image are already
+    marked in ``wcosts`` (both equal to the winner's cost, so the fit keeps the integer).
     """
     h, w = disp.shape
     out = disp.copy()
@@ -277,7 +279,7 @@ def subpixel_winner(wdisp: np.ndarray, wcosts: np.ndarray, disp: np.ndarray, min
             if not np.isfinite(d):
                 continue
             k = int(d) - min_disp
-            if k <= 0 or k >= ndisp - 1 or x - (min_disp + k + 1) < 0:
+            if k <= 0 or k >= ndisp - 1 or (left and x - (min_disp + k + 1) < 0):
                 continue
             wd = wdisp[y, x]
             if not np.isfinite(wd) or int(wd) - min_disp != k:

@@ -95,6 +95,50 @@ def uniqueness(cost, disp, min_disp: int, ratio: float) -> np.ndarray:
 
 
 @njit(cache=True, parallel=True)
+def uniqueness_from_second(best, second, disp, ratio: float) -> np.ndarray:
+    """:func:`uniqueness` from each pixel's winning cost and its best cost beyond ±1 ((H, W)
+    float32 each, +inf where there is none)."""
+    h, w = disp.shape
+    out = disp.copy()
+    keep = 1.0 - ratio
+    for y in prange(h):
+        for x in range(w):
+            if np.isfinite(disp[y, x]) and np.float64(second[y, x]) * keep < np.float64(best[y, x]):
+                out[y, x] = INF
+    return out
+
+
+@njit(cache=True, inline="always")
+def _confidence_value(bc: float, sc: float, d: float, x: int, y: int, disp_right, has_right: bool,
+                      lr_scale: float, margin_scale: float) -> float:
+    # min(1, u / margin_scale) · exp(−|d_L − d_R(x − d_L)| / lr_scale), u = 1 − c_best / c_second.
+    u = 1.0 if not np.isfinite(sc) or sc <= 0 else max(0.0, 1.0 - bc / sc)
+    c = min(1.0, u / margin_scale)
+    if has_right:
+        xr = int(np.floor(x - d + 0.5))
+        if xr < 0 or xr >= disp_right.shape[1] or not np.isfinite(disp_right[y, xr]):
+            return 0.0
+        c *= np.exp(-abs(d - disp_right[y, xr]) / lr_scale)
+    return c
+
+
+@njit(cache=True, parallel=True)
+def confidence_from_second(best, second, disp, disp_right, lr_scale: float, margin_scale: float) -> np.ndarray:
+    """:func:`confidence` from each pixel's winning cost and its best cost beyond ±1 ((H, W)
+    float32 each, +inf where there is none)."""
+    h, w = disp.shape
+    conf = np.zeros((h, w), np.float32)
+    has_right = disp_right.shape[0] == h and disp_right.shape[1] == w
+    for y in prange(h):
+        for x in range(w):
+            d = disp[y, x]
+            if np.isfinite(d):
+                conf[y, x] = np.float32(_confidence_value(np.float64(best[y, x]), np.float64(second[y, x]), d, x, y,
+                                                          disp_right, has_right, lr_scale, margin_scale))
+    return conf
+
+
+@njit(cache=True, parallel=True)
 def confidence(cost, disp, disp_right, min_disp: int, lr_scale: float, margin_scale: float) -> np.ndarray:
     """Per-pixel confidence in [0, 1]: cost uniqueness × left-right agreement.
 
@@ -118,15 +162,7 @@ def confidence(cost, disp, disp_right, min_disp: int, lr_scale: float, margin_sc
             bk = _first_min(row, k0, k1)
             bc = np.float64(row[bk])
             sc = min(_range_min(row, k0, bk - 2), _range_min(row, bk + 2, k1))
-            u = 1.0 if not np.isfinite(sc) or sc <= 0 else max(0.0, 1.0 - bc / sc)
-            c = min(1.0, u / margin_scale)
-            if has_right:
-                xr = int(np.floor(x - d + 0.5))
-                if xr < 0 or xr >= w or not np.isfinite(disp_right[y, xr]):
-                    c = 0.0
-                else:
-                    c *= np.exp(-abs(d - disp_right[y, xr]) / lr_scale)
-            conf[y, x] = np.float32(c)
+            conf[y, x] = np.float32(_confidence_value(bc, sc, d, x, y, disp_right, has_right, lr_scale, margin_scale))
     return conf
 
 

@@ -11,14 +11,15 @@ copy), plus ``O(W·D)`` row buffers (``buffer_bytes``).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from ...errors import ConfigError
 from ...registry import param, register
 from ..kernels import sgm as ks
-from ..state import MatchState
+from ..kernels import sgm_window as kw
+from ..state import MatchState, WinnerCosts
 
 #: Largest value of the aggregated volume (``state.cost_max`` after SGM); sums stay below it.
 S_MAX = 65535
@@ -31,6 +32,11 @@ class SGMParams:
     p2: float = param(1.75, "penalty for larger disparity jumps, as a fraction of cost_max (clamped to ≥ p1)", unit="× cost_max", low=0.0, high=20.0)
     p2_gamma: float = param(16.0, "adaptive P2 = max(P1, P2·γ/(γ+|ΔI|)) from the left image gradient along the path; 0 = constant P2", unit="grey levels", low=0.0, high=1000.0)
     levels: int = param(255, "quantisation levels for the matching costs (255 keeps them in uint8)", low=15, high=4095)
+    coarse: bool = param(False, "coarse-to-fine search: a full-range SGM at half resolution sets each pixel's hypotheses")
+    margin: int = param(2, "coarse-to-fine: hypotheses beyond the coarse neighbourhood's range, each side", unit="px", low=0, high=64)
+    radius: int = param(1, "coarse-to-fine: neighbourhood radius at the coarse level", unit="coarse px", low=0, high=8)
+    max_window: int = param(0, "coarse-to-fine: most hypotheses per pixel (0 = as the neighbourhood needs)", low=0, high=4096)
+    coarse_paths: int = param(0, "coarse-to-fine: path directions at the coarse level (0 = paths)", choices=(0, 2, 4, 8, 16))
 
 
 def quantization(cost_max: float, paths: int, p1: float, p2: float, levels: int) -> tuple[float, int, int, int]:
@@ -49,10 +55,79 @@ def quantization(cost_max: float, paths: int, p1: float, p2: float, levels: int)
     return scale, max(cap, 1), int(round(p1 * levels)), int(round(p2 * levels))
 
 
-def run_sgm(state: MatchState, p: SGMParams) -> None:
+def coarse_disparity(state: MatchState, p: SGMParams) -> np.ndarray:
+    """Left disparities of the pair at half resolution (full range, same cost and SGM), LR
+    checked (±1 coarse px); (ceil(H/2), ceil(W/2)) float32 in coarse px, +inf where rejected."""
+    import cv2
+
+    h, w = state.shape
+    h2, w2 = (h + 1) // 2, (w + 1) // 2
+
+    def half(img: np.ndarray) -> np.ndarray:
+        return np.ascontiguousarray(cv2.resize(img, (w2, h2), interpolation=cv2.INTER_AREA), dtype=np.float32)
+
+    def half_mask(mask):
+        return None if mask is None else half(mask.astype(np.float32)) > 0.999
+
+    lo_d = int(np.floor(state.min_disp / 2))
+    hi_d = int(np.ceil((state.min_disp + state.ndisp - 1) / 2))
+    sub = MatchState(half(state.left), half(state.right), lo_d, hi_d - lo_d + 1, half_mask(state.left_valid),
+                     half_mask(state.right_valid), want_right=True, integer_cost_ok=state.integer_cost_ok,
+                     threads=state.threads)
+    call = state.cost_call
+    call.stage.func(sub, call.params)
+    if sub.right_valid is not None:
+        from ..kernels.cost import mask_invalid_right
+
+        mask_invalid_right(sub.cost, sub.right_valid, sub.min_disp, np.float32(sub.cost_max))
+    run_sgm(sub, replace(p, paths=p.coarse_paths or p.paths), coarse=False)
+    dl, dr = sub.disparity, sub.disparity_right
+    xs = np.arange(w2)[None, :] - np.where(np.isfinite(dl), dl, 0).astype(np.int64)
+    ok = np.isfinite(dl) & (xs >= 0)
+    back = np.take_along_axis(dr, np.clip(xs, 0, w2 - 1), axis=1)
+    ok &= np.abs(back - dl) <= 1.0
+    return np.where(ok, dl, np.float32(np.inf)).astype(np.float32)
+
+
+def search_windows(coarse: np.ndarray, shape: tuple[int, int], min_disp: int, ndisp: int, margin: int,
+                   radius: int, max_window: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per-pixel hypothesis windows ``[lo, hi)`` (volume indices, (H, W) int32) from coarse
+    disparities: the range of the valid coarse disparities within ``radius`` coarse pixels,
+    doubled, plus ``margin`` px each side; the full range where none is valid."""
+    import cv2
+
+    h, w = shape
+    valid = np.isfinite(coarse)
+    size = 2 * radius + 1
+    kernel = np.ones((size, size), np.uint8)
+    big = np.float32(1e9)
+    nmin = cv2.erode(np.where(valid, coarse, big), kernel, borderType=cv2.BORDER_REPLICATE)
+    nmax = cv2.dilate(np.where(valid, coarse, -big), kernel, borderType=cv2.BORDER_REPLICATE)
+    seen = nmax >= nmin
+    lo = np.where(seen, 2 * nmin - margin - min_disp, 0)
+    hi = np.where(seen, 2 * nmax + margin + 1 - min_disp, ndisp)
+    lo = np.repeat(np.repeat(lo, 2, 0), 2, 1)[:h, :w]
+    hi = np.repeat(np.repeat(hi, 2, 0), 2, 1)[:h, :w]
+    lo = np.clip(lo, 0, ndisp - 1).astype(np.int32)
+    hi = np.clip(hi, lo + 1, ndisp).astype(np.int32)
+    if max_window > 0:
+        wide = hi - lo > max_window
+        own = np.repeat(np.repeat(coarse, 2, 0), 2, 1)[:h, :w]
+        centre = np.where(np.isfinite(own), 2 * own - min_disp, (lo + hi) // 2)
+        start = np.clip(centre - max_window // 2, 0, max(ndisp - max_window, 0)).astype(np.int32)
+        lo = np.where(wide, start, lo).astype(np.int32)
+        hi = np.where(wide, np.minimum(start + max_window, ndisp), hi).astype(np.int32)
+    return lo, hi
+
+
+def run_sgm(state: MatchState, p: SGMParams, coarse: bool | None = None) -> None:
     """Run SGM on ``state.cost``; sets ``disparity`` and replaces ``cost`` by the uint16 sums."""
     if state.cost is None:
         raise ConfigError("optimizer.sgm: no cost volume (the cost stage did not run)")
+    window = None
+    if (p.coarse if coarse is None else coarse) and state.cost_call is not None and state.ndisp > 4:
+        c = coarse_disparity(state, p)
+        window = search_windows(c, state.shape, state.min_disp, state.ndisp, p.margin, p.radius, p.max_window)
     cost = state.cost
     scale, cap, p1, p2 = quantization(state.cost_max, p.paths, p.p1, p.p2, p.levels)
     mul = int(scale)
@@ -70,14 +145,28 @@ def run_sgm(state: MatchState, p: SGMParams) -> None:
     state.cost = None
     del cost
     guide = np.ascontiguousarray(state.gray("left"), dtype=np.float32)
+    state.extras["sgm_scale"] = scale
+    state.cost_max = float(S_MAX)
+    if window is not None:
+        run = kw.sgm_window(cq, guide, p.paths, p1, p2, float(p.p2_gamma), state.min_disp, window[0], window[1],
+                            state.want_right, state.want_second, cost_mul=mul)
+        del cq
+        state.disparity = run["disparity"]
+        if state.want_right:
+            state.disparity_right = run["disparity_right"]
+        if state.volume_needed:
+            state.cost = kw.expand_sums(run["total"], run["offset"], run["lo"], run["hi"], state.ndisp)
+        else:
+            state.winner = WinnerCosts(run["disparity"].copy(), run["costs"], run["costs_right"],
+                                       None if run["disparity_right"] is None else run["disparity_right"].copy(),
+                                       run["second"])
+        return
     acc, state.disparity, right = ks.sgm_aggregate(cq, guide, p.paths, p1, p2, float(p.p2_gamma),
                                                    state.min_disp, state.want_right, cost_mul=mul)
     if right is not None:
         state.disparity_right = right
     del cq
     state.cost = acc
-    state.cost_max = float(S_MAX)
-    state.extras["sgm_scale"] = scale
 
 
 @register("optimizer", "sgm", SGMParams)

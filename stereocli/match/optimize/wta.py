@@ -34,9 +34,14 @@ def check_winner_coverage(missing: int, stage: str) -> None:
 
 
 def subpixel_on_winner(winner: WinnerCosts, disparity: np.ndarray, min_disp: int, ndisp: int,
-                       equiangular: bool, stage: str = "subpixel") -> np.ndarray:
+                       equiangular: bool, stage: str = "subpixel", right: bool = False) -> np.ndarray:
     """Sub-pixel refinement of the WTA disparities from ``winner`` (same result as
-    :func:`~stereocli.match.kernels.volume.subpixel_left` on the volume)."""
-    refined, missing = subpixel_winner(winner.disparity, winner.costs, disparity, min_disp, ndisp, equiangular)
+    :func:`~stereocli.match.kernels.volume.subpixel_left` on the volume; ``right``: the
+    right-view map from ``winner.costs_right``)."""
+    if right:
+        refined, missing = subpixel_winner(winner.disparity_right, winner.costs_right, disparity, min_disp, ndisp,
+                                           equiangular, False)
+    else:
+        refined, missing = subpixel_winner(winner.disparity, winner.costs, disparity, min_disp, ndisp, equiangular)
     check_winner_coverage(int(missing), stage)
     return refined

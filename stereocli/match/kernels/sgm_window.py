@@ -1,0 +1,346 @@
+"""Semi-global matching restricted to a window of hypotheses per pixel (coarse-to-fine search).
+
+The same recursion and two-pass, two-phase schedule as :mod:`.sgm` (read its docstring
+first), with each pixel ``p`` searching only ``[lo(p), hi(p))`` (volume indices) instead of
+the whole range: the windows come from a coarse disparity map
+(:func:`stereocli.match.optimize.sgm.search_windows`), in the spirit of Rothermel et al.'s
+tSGM ("SURE: photogrammetric surface reconstruction from imagery", 2012).
+
+* Path costs are defined on each pixel's window and are +∞ outside it. A step from the
+  predecessor ``q`` (window ``[plo, phi)``) to ``p`` therefore reads ``L(q, d − 1 .. d + 1)``
+  only where ``d ∈ [plo − 1, phi]``; further out only the jump term ``min_k L(q, k) + P2`` is
+  finite, so ``L(p, d) = C(p, d) + P2`` there.
+* Path-cost rows keep the layout of :mod:`.sgm` (one int16 buffer per pixel, indexed by the
+  volume index ``k + 2``), with two sentinels written on each side of a pixel's window after
+  its step, so the step's main loop has no branches.
+* The sums ``S`` are stored *ragged*: pixel (y, x) owns ``width = hi − lo`` uint16 entries at
+  ``offset[y, x]`` of one flat array (row-major), so memory and time scale with the windows,
+  not with H·W·D.
+* Inner loops index with unsigned integers (numba emits no negative-index wrap-around code
+  for them, so LLVM vectorises loops that start at a run-time window bound). The flat sum
+  index is ``(offset − lo) + k`` computed modulo 2⁶⁴, which is exact for every k ≥ lo.
+* Besides the integer winners the kernel returns, per pixel and view, the sums at the winner
+  and its two neighbours (sub-pixel fitting without a volume) and, on request, the best sum
+  more than one hypothesis from the winner (uniqueness and confidence).
+
+Every element is computed by one thread in a fixed order: bit-identical for any thread count.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+from .sgm import DOWN_DIRECTIONS, INF, INT16_MAX, _pack, _penalty2
+
+#: Sum value used where a hypothesis is outside a pixel's window.
+S_MAX = 65535
+
+U1 = np.uint64(1)
+U2 = np.uint64(2)
+U3 = np.uint64(3)
+
+
+@njit(cache=True, inline="always")
+def _clear(out, olo: int, ohi: int, lo: int, hi: int, sentinel) -> None:
+    # ``out`` held the window [olo, ohi) and now holds [lo, hi): reset what the new window does
+    # not cover, so every buffer holds sentinels outside its window.
+    for d in range(np.uint64(olo), np.uint64(max(olo, min(ohi, lo)))):
+        out[d + U2] = sentinel
+    for d in range(np.uint64(max(olo, hi)), np.uint64(max(ohi, hi))):
+        out[d + U2] = sentinel
+
+
+@njit(cache=True, inline="always")
+def _start(c, mul, out, olo: int, ohi: int, total, base, lo: int, hi: int, sentinel, keep):
+    # First pixel of a path: L_r(p, d) = C(p, d) on the window; adds L_r into the sums
+    # (``keep`` = 0: overwrites them instead, for the first path of a pixel).
+    mul16 = np.int16(mul)
+    m = np.int16(INT16_MAX)
+    for d in range(np.uint64(lo), np.uint64(hi)):
+        v = np.int16(np.int16(c[d]) * mul16)
+        out[d + U2] = v
+        total[base + d] = np.uint16((total[base + d] & keep) + np.uint16(v))
+        m = min(m, v)
+    _clear(out, olo, ohi, lo, hi, sentinel)
+    return m
+
+
+@njit(cache=True, inline="always")
+def _step(c, mul, prev, pmin, p1, p2, out, olo: int, ohi: int, total, base, lo: int, hi: int, sentinel, keep):
+    # Eq. 13 on p's window [lo, hi). ``prev`` (the predecessor's path costs, indexed k + 2)
+    # holds sentinels outside the predecessor's window, so hypotheses it does not reach take
+    # the jump term (L = C + P2) in the same branch-free loop, which LLVM vectorises. The sums
+    # are kept (``keep`` = 0xFFFF) or overwritten (0) without a branch.
+    mul16 = np.int16(mul)
+    pm = np.int16(pmin)
+    jump = np.int16(pmin + p2)
+    pp1 = np.int16(p1)
+    m = np.int16(INT16_MAX)
+    for d in range(np.uint64(lo), np.uint64(hi)):
+        same = prev[d + U2]
+        near = np.int16(min(prev[d + U1], prev[d + U3]) + pp1)
+        v = np.int16(np.int16(min(min(same, near), jump) - pm) + np.int16(np.int16(c[d]) * mul16))
+        out[d + U2] = v
+        total[base + d] = np.uint16((total[base + d] & keep) + np.uint16(v))
+        m = min(m, v)
+    _clear(out, olo, ohi, lo, hi, sentinel)
+    return m
+
+
+@njit(cache=True, inline="always")
+def _sum_at(total, base, lo: int, hi: int, k: int) -> float:
+    # S(k) as float32, or -1 where k is outside the window [lo, hi).
+    if k < lo or k >= hi:
+        return -1.0
+    return np.float32(total[base + np.uint64(k)])
+
+
+@njit(cache=True, inline="always")
+def _put_costs(costs, y: int, x: int, c0, c1, c2) -> None:
+    # Where a neighbour is undefined (outside the window or the image) both are stored equal
+    # to the winner's sum, so a sub-pixel fit keeps the integer (as at the ends of the range).
+    if c0 < 0 or c2 < 0:
+        c0 = c1
+        c2 = c1
+    costs[y, x, 0] = c0
+    costs[y, x, 1] = c1
+    costs[y, x, 2] = c2
+
+
+@njit(cache=True)
+def _pass_rows(cq, mul, pens, total, offset, win_lo, win_hi, dirs, forward: bool, i0: int, i1: int,
+               fresh: bool, p1: int, lbuf, lslot, mins, hbuf, disp, disp_r, costs, costs_r, second, rbest,
+               min_disp: int) -> None:
+    """Rows ``i0 ≤ i < i1`` (in pass order) of one raster pass (:func:`.sgm._pass_rows`, windowed).
+
+    ``pens`` (K + 1, H, W) int16: P2 per pixel and direction (:func:`penalty_maps`). ``total``
+    is the flat uint16 sum array, ``offset`` (H, W) int64 each pixel's first entry,
+    ``win_lo``/``win_hi`` (H, W) int32 its window. In the second phase the row's winners are
+    taken (left, and right if ``disp_r`` is not empty) with their neighbouring sums in
+    ``costs``/``costs_r`` (H, W, 3) float32 and, if ``second`` is not empty, the best sum more
+    than one hypothesis from the left winner. ``lslot`` (K, 3, W, 2) int32 holds the window
+    each path-cost buffer of ``lbuf`` holds (its entries outside are sentinels); ``hbuf`` (2,
+    D + 4) is reset to sentinels here.
+    """
+    h, w, nd = cq.shape
+    nk = dirs.shape[0]
+    s = 1 if forward else -1
+    sentinel = np.int16(INT16_MAX - p1)  # sentinel + P1 still fits int16; never selected
+    hbuf[:] = sentinel
+    # Windows the two horizontal buffers hold (locals: per-thread arrays written every pixel
+    # would share cache lines between the threads).
+    h_lo0 = h_hi0 = h_lo1 = h_hi1 = 0
+    # In the first phase the horizontal path is the first to reach each pixel: it overwrites
+    # the sums (no separate zeroing pass over them).
+    hkeep = np.uint16(0) if fresh else np.uint16(0xFFFF)
+    keep = np.uint16(0xFFFF)
+    for i in range(i0, i1):
+        y = i if forward else h - 1 - i
+        ring = i % 3
+        lo_row = win_lo[y]
+        hi_row = win_hi[y]
+        off_row = offset[y]
+        hmin = 0
+        for j in range(w):
+            x = j if forward else w - 1 - j
+            lo = lo_row[x]
+            hi = hi_row[x]
+            base = np.uint64(off_row[x] - lo)
+            if j % 2 == 0:
+                olo, ohi = h_lo0, h_hi0
+                h_lo0, h_hi0 = lo, hi
+                cur, prev = hbuf[0], hbuf[1]
+            else:
+                olo, ohi = h_lo1, h_hi1
+                h_lo1, h_hi1 = lo, hi
+                cur, prev = hbuf[1], hbuf[0]
+            if j == 0:
+                hmin = _start(cq[y, x], mul, cur, olo, ohi, total, base, lo, hi, sentinel, hkeep)
+            else:
+                # P2 between x and its predecessor x − s, stored at the right one of the two.
+                pen = pens[0, y, x] if forward else pens[0, y, x + 1]
+                hmin = _step(cq[y, x], mul, prev, hmin, p1, pen, cur, olo, ohi, total, base, lo, hi, sentinel, hkeep)
+        for k in range(nk):
+            ip = i - dirs[k, 0]
+            pr = ip % 3
+            yp = y - s * dirs[k, 0]
+            for x in range(w):
+                xp = x - s * dirs[k, 1]
+                lo = lo_row[x]
+                hi = hi_row[x]
+                base = np.uint64(off_row[x] - lo)
+                olo = lslot[k, ring, x, 0]
+                ohi = lslot[k, ring, x, 1]
+                if ip < 0 or xp < 0 or xp >= w:
+                    mins[k, ring, x] = _start(cq[y, x], mul, lbuf[k, ring, x], olo, ohi, total, base, lo, hi,
+                                              sentinel, keep)
+                else:
+                    pen = pens[k + 1, y, x] if forward else pens[k + 1, yp, xp]
+                    mins[k, ring, x] = _step(cq[y, x], mul, lbuf[k, pr, xp], mins[k, pr, xp], p1, pen,
+                                             lbuf[k, ring, x], olo, ohi, total, base, lo, hi, sentinel, keep)
+                lslot[k, ring, x, 0] = lo
+                lslot[k, ring, x, 1] = hi
+        if fresh:
+            continue
+        # The row's sums are complete: winners among hypotheses inside the window whose right
+        # pixel x − d lies inside the image; (sum, k) packed in a uint32 so ties go to the
+        # smaller k (as in .sgm). The right view scans the same sums along the diagonals.
+        want_right = disp_r.shape[0] > 0
+        want_second = second.shape[0] > 0
+        if want_right:
+            rbest[:] = 0xFFFFFFFF
+        for x in range(w):
+            lo = lo_row[x]
+            hi = hi_row[x]
+            base = np.uint64(off_row[x] - lo)
+            k0 = max(0, x - min_disp - (w - 1), lo)
+            k1 = min(nd - 1, x - min_disp, hi - 1)
+            if k1 < k0:
+                disp[y, x] = INF
+                continue
+            best = np.uint32(0xFFFFFFFF)
+            for k in range(np.uint64(k0), np.uint64(k1 + 1)):
+                best = min(best, _pack(total[base + k], k))
+            kb = int(best & np.uint32(0xFFFF))
+            disp[y, x] = np.float32(min_disp + kb)
+            c1 = np.float32(best >> np.uint32(16))
+            c0 = _sum_at(total, base, k0, k1 + 1, kb - 1)
+            c2 = _sum_at(total, base, k0, k1 + 1, kb + 1)
+            _put_costs(costs, y, x, c0, c1, c2)
+            if want_second:
+                sec = INF
+                for k in range(k0, k1 + 1):
+                    if k < kb - 1 or k > kb + 1:
+                        sec = min(sec, np.float32(total[base + np.uint64(k)]))
+                second[y, x] = sec
+            if want_right:
+                rb = w - 1 - x + min_disp
+                for k in range(k0, k1 + 1):
+                    rbest[rb + k] = min(rbest[rb + k], _pack(total[base + np.uint64(k)], k))
+        if want_right:
+            for xr in range(w):
+                v = rbest[w - 1 - xr]
+                if v == 0xFFFFFFFF:
+                    continue
+                kb = int(v & np.uint32(0xFFFF))
+                disp_r[y, xr] = np.float32(min_disp + kb)
+                c1 = np.float32(v >> np.uint32(16))
+                # Right-view neighbours along the diagonal: S(x − 1, k − 1) and S(x + 1, k + 1).
+                x = xr + min_disp + kb
+                c0 = np.float32(-1.0)
+                c2 = np.float32(-1.0)
+                if x - 1 >= 0:
+                    c0 = _sum_at(total, np.uint64(off_row[x - 1] - lo_row[x - 1]), lo_row[x - 1], hi_row[x - 1], kb - 1)
+                if x + 1 < w:
+                    c2 = _sum_at(total, np.uint64(off_row[x + 1] - lo_row[x + 1]), lo_row[x + 1], hi_row[x + 1], kb + 1)
+                _put_costs(costs_r, y, xr, c0, c1, c2)
+
+
+@njit(cache=True, parallel=True)
+def penalty_maps(guide, dirs, p1: int, p2: int, gamma: float):
+    """(K + 1, H, W) int16: the adaptive P2 between each pixel and its predecessor along the
+    horizontal path (index 0, predecessor (y, x − 1)) and each direction (dy, dx) of ``dirs``
+    (predecessor (y − dy, x − dx)); P2 where the predecessor is outside the image. The
+    penalty is symmetric, so the backward pass reads it at its predecessor."""
+    h, w = guide.shape
+    nk = dirs.shape[0]
+    pens = np.empty((nk + 1, h, w), np.int16)
+    for y in prange(h):
+        pens[0, y, 0] = p2
+        for x in range(1, w):
+            pens[0, y, x] = _penalty2(guide[y, x], guide[y, x - 1], p1, p2, gamma)
+        for k in range(nk):
+            dy = dirs[k, 0]
+            dx = dirs[k, 1]
+            for x in range(w):
+                if y - dy >= 0 and 0 <= x - dx < w:
+                    pens[k + 1, y, x] = _penalty2(guide[y, x], guide[y - dy, x - dx], p1, p2, gamma)
+                else:
+                    pens[k + 1, y, x] = p2
+    return pens
+
+
+@njit(cache=True, parallel=True)
+def sgm_window_two_pass(cq, mul: int, pens, total, offset, win_lo, win_hi, dirs, p1: int, min_disp: int,
+                        want_right: bool, want_second: bool):
+    """Both passes in two phases over the windows; returns ``(disp, disp_r, costs, costs_r,
+    second)`` (the right-view arrays and ``second`` are empty when not wanted)."""
+    h, w, nd = cq.shape
+    nk = dirs.shape[0]
+    split = h // 2
+    lbuf = np.full((2, nk, 3, w, nd + 4), INT16_MAX - p1, np.int16)
+    lslot = np.zeros((2, nk, 3, w, 2), np.int32)  # every buffer starts as all sentinels
+    hbuf = np.empty((2, 2, nd + 4), np.int16)
+    mins = np.zeros((2, nk, 3, w), np.int16)
+    rbest = np.zeros((2, w if want_right else 0), np.uint32)
+    hr = h if want_right else 0
+    wr = w if want_right else 0
+    disp = np.empty((h, w), np.float32)
+    disp_r = np.full((hr, wr), INF, np.float32)
+    costs = np.zeros((h, w, 3), np.float32)
+    costs_r = np.zeros((hr, wr, 3), np.float32)
+    second = np.zeros((h if want_second else 0, w if want_second else 0), np.float32)
+    for phase in range(2):
+        fresh = phase == 0
+        for t in prange(2):
+            forward = t == 0
+            first = split if forward else h - split
+            i0, i1 = (0, first) if fresh else (first, h)
+            _pass_rows(cq, mul, pens, total, offset, win_lo, win_hi, dirs, forward, i0, i1, fresh, p1, lbuf[t],
+                       lslot[t], mins[t], hbuf[t], disp, disp_r, costs, costs_r, second, rbest[t], min_disp)
+    return disp, disp_r, costs, costs_r, second
+
+
+@njit(cache=True, parallel=True)
+def expand_sums(total, offset, win_lo, win_hi, nd: int):
+    """The dense (H, W, D) uint16 volume of ragged sums, ``S_MAX`` outside the windows (for
+    stages that need the whole volume)."""
+    h, w = win_lo.shape
+    out = np.full((h, w, nd), S_MAX, np.uint16)
+    for y in prange(h):
+        for x in range(w):
+            lo = win_lo[y, x]
+            o = offset[y, x]
+            for k in range(lo, win_hi[y, x]):
+                out[y, x, k] = total[o + k - lo]
+    return out
+
+
+def window_offsets(win_lo: np.ndarray, win_hi: np.ndarray) -> tuple[np.ndarray, int]:
+    """Row-major offsets (H, W) int64 of each pixel's sums in the flat array, and its length."""
+    width = (win_hi - win_lo).astype(np.int64).ravel()
+    offset = np.zeros(width.size, np.int64)
+    np.cumsum(width[:-1], out=offset[1:])
+    return offset.reshape(win_lo.shape), int(width.sum())
+
+
+def sgm_window(cq: np.ndarray, guide: np.ndarray, paths: int, p1: int, p2: int, gamma: float, min_disp: int,
+               win_lo: np.ndarray, win_hi: np.ndarray, want_right: bool = False, want_second: bool = False,
+               cost_mul: int = 1):
+    """Windowed SGM (module docstring) on integer costs ``cq`` (H, W, D) uint8/uint16.
+
+    ``win_lo``/``win_hi``: (H, W) int32 with ``0 ≤ lo < hi ≤ D``. Returns a dict with ``disparity``
+    and ``disparity_right`` (float32 integer winners, +inf where none; the right one None unless
+    wanted), ``costs``/``costs_right`` ((H, W, 3) float32 sums at the winner − 1, winner,
+    winner + 1; an undefined neighbour equals the winner's sum), ``second`` ((H, W) float32 or
+    None) and the ragged sums ``total``/``offset`` (for :func:`expand_sums`).
+    """
+    h, w, nd = cq.shape
+    if nd > 65535:
+        raise ValueError("SGM supports at most 65535 disparities")
+    lo = np.ascontiguousarray(win_lo, dtype=np.int32)
+    hi = np.ascontiguousarray(win_hi, dtype=np.int32)
+    if lo.shape != (h, w) or hi.shape != (h, w) or lo.min() < 0 or hi.max() > nd or np.any(hi <= lo):
+        raise ValueError("SGM windows must satisfy 0 <= lo < hi <= D for every pixel")
+    offset, n = window_offsets(lo, hi)
+    total = np.empty(n, np.uint16)
+    guide = np.ascontiguousarray(guide, dtype=np.float32)
+    dirs = DOWN_DIRECTIONS[paths]
+    pens = penalty_maps(guide, dirs, int(p1), int(p2), float(gamma))
+    disp, disp_r, costs, costs_r, second = sgm_window_two_pass(
+        cq, int(cost_mul), pens, total, offset, lo, hi, dirs, int(p1), int(min_disp), bool(want_right),
+        bool(want_second))
+    return {"disparity": disp, "disparity_right": disp_r if want_right else None, "costs": costs,
+            "costs_right": costs_r if want_right else None, "second": second if want_second else None,
+            "total": total, "offset": offset, "lo": lo, "hi": hi}
