@@ -378,6 +378,22 @@ def census_cost(state: MatchState, p: CensusParams) -> None:
 census_cost.integer_cost_itemsize = 1
 
 
+def _census_windowed(state: MatchState, p: CensusParams, runs) -> tuple[np.ndarray, float]:
+    """Census Hamming costs on the runs of a windowed SGM only (ragged uint8, see
+    :func:`stereocli.match.kernels.sgm_window.window_runs`), honouring ``right_valid``;
+    returns ``(costs, cost_max)``."""
+    wh, ww = p.window
+    left = kc.census_transform(np.ascontiguousarray(state.gray("left")), wh // 2, ww // 2)
+    right = kc.census_transform(np.ascontiguousarray(state.gray("right")), wh // 2, ww // 2)
+    cost_max = float(wh * ww - 1)
+    valid = state.right_valid if state.right_valid is not None else np.zeros((0, 0), np.bool_)
+    _, _, run_lo, run_hi, offset, n = runs
+    return kc.hamming_runs(left, right, state.min_disp, cost_max, run_lo, run_hi, offset, n, valid), cost_max
+
+
+census_cost.windowed = _census_windowed
+
+
 @dataclass(frozen=True)
 class RankParams:
     window: tuple[int, int] = param((7, 7), "rank-transform window (height, width), odd", unit="px", low=3, high=31)

@@ -40,6 +40,7 @@ from typing import Callable
 import numpy as np
 
 from ..config import PipelineConfig
+from .allocator import keep_freed_memory
 from ..errors import DataError, MemoryBudgetError
 from .kernels.cost import mask_invalid_right
 from .kernels.volume import wta_right
@@ -48,6 +49,8 @@ from .state import MatchState
 
 #: Use fused cost + WTA kernels when the pipeline allows it (False forces the volume path).
 FUSED = True
+
+keep_freed_memory()  # large buffers stay in the process between pairs (see .allocator)
 
 GIB = 1024.0**3
 #: Interpreter, numpy/numba/OpenCV libraries and compiled kernels (measured RSS before matching).
@@ -404,9 +407,12 @@ def _run_volume_stages(sub: MatchState, config: PipelineConfig, volume_stages, t
     sub.integer_cost_ok = not config.aggregation and getattr(config.optimizer.stage.func,
                                                              "accepts_integer_cost", False)
     sub.cost_call = call
-    _timed(timings, f"cost.{call.stage.name}", call.stage.func, sub, call.params)
-    if sub.right_valid is not None:
-        mask_invalid_right(sub.cost, sub.right_valid, sub.min_disp, np.float32(sub.cost_max))
+    # An optimizer that computes the costs itself (coarse-to-fine SGM: on its windows only)
+    # says so with ``runs_cost(params)``; it then honours ``right_valid`` too.
+    if not getattr(config.optimizer.stage.func, "runs_cost", lambda params: False)(config.optimizer.params):
+        _timed(timings, f"cost.{call.stage.name}", call.stage.func, sub, call.params)
+        if sub.right_valid is not None:
+            mask_invalid_right(sub.cost, sub.right_valid, sub.min_disp, np.float32(sub.cost_max))
     for call in config.aggregation:
         _timed(timings, f"aggregation.{call.stage.name}", call.stage.func, sub, call.params)
     call = config.optimizer

@@ -84,16 +84,23 @@ class MatchState:
     cost_call: object | None = None  # the configured cost StageCall (an optimizer may rerun it at a coarser scale)
     volume_needed: bool = True  # a later stage reads ``cost`` itself (else ``winner`` may stand in for it)
     want_second: bool = False  # a later stage reads ``winner.second`` (uniqueness, confidence)
+    gray_cache: dict = field(default_factory=dict, repr=False)  # which -> (image, its grey), see gray()
 
     @property
     def shape(self) -> tuple[int, int]:
         return self.left.shape[:2]
 
     def gray(self, which: str = "left") -> np.ndarray:
-        """The left or right image as (H, W) float32 grey (luma of RGB)."""
+        """The left or right image as (H, W) float32 grey (luma of RGB); computed once per image
+        object (stages that replace ``left``/``right`` get a fresh one). Do not modify it."""
         img = self.left if which == "left" else self.right
         if img.ndim == 2:
             return img
-        return (0.299 * img[..., 0] + 0.587 * img[..., 1] + 0.114 * img[..., 2]).astype(
-            np.float32
-        )
+        cache = self.gray_cache
+        hit = cache.get(which)
+        if hit is not None and hit[0] is img:
+            return hit[1]
+        grey = np.ascontiguousarray(
+            (0.299 * img[..., 0] + 0.587 * img[..., 1] + 0.114 * img[..., 2]).astype(np.float32))
+        cache[which] = (img, grey)
+        return grey

@@ -80,6 +80,42 @@ def _hamming_rows(census_left, census_right, min_disp: int, cost_max: float, out
                     dst[k] = _popcount64(cl ^ src[k])
 
 
+@njit(cache=True, parallel=True)
+def hamming_runs(census_left, census_right, min_disp: int, cost_max: float, run_lo, run_hi, offset, n: int,
+                 right_valid):
+    """Hamming costs on each pixel's run of hypotheses ``[run_lo, run_hi)`` only, stored ragged
+    (pixel (y, x) at ``offset[y, x]``, uint8; the layout of
+    :mod:`stereocli.match.kernels.sgm_window`). ``cost_max`` where the right pixel is outside
+    the image or, if ``right_valid`` is not empty, outside its valid mask."""
+    h, w = census_left.shape
+    out = np.empty(n, np.uint8)
+    top = np.uint8(cost_max)
+    masked = right_valid.shape[0] > 0
+    for y in prange(h):
+        reversed_right = census_right[y, ::-1].copy()  # hypothesis k reads forward (as above)
+        for x in range(w):
+            cl = census_left[y, x]
+            a = run_lo[y, x]
+            b = run_hi[y, x]
+            o = offset[y, x] - a
+            k0 = max(a, x - min_disp - (w - 1))
+            k1 = min(b - 1, x - min_disp)
+            for k in range(a, min(k0, b)):
+                out[o + k] = top
+            for k in range(max(k1 + 1, a), b):
+                out[o + k] = top
+            if k1 >= k0:
+                src = reversed_right[w - 1 - x + min_disp + k0:w - 1 - x + min_disp + k1 + 1]
+                dst = out[o + k0:o + k1 + 1]
+                for j in range(src.shape[0]):
+                    dst[j] = _popcount64(cl ^ src[j])
+                if masked:
+                    for k in range(k0, k1 + 1):
+                        if not right_valid[y, x - min_disp - k]:
+                            out[o + k] = top
+    return out
+
+
 def hamming_volume(census_left: np.ndarray, census_right: np.ndarray, min_disp: int, ndisp: int,
                    cost_max: float, dtype=np.float32) -> np.ndarray:
     """Hamming distance between left and right census strings for every hypothesis.

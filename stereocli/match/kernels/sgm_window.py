@@ -52,39 +52,49 @@ def _clear(out, olo: int, ohi: int, lo: int, hi: int, sentinel) -> None:
 
 
 @njit(cache=True, inline="always")
-def _start(c, mul, out, olo: int, ohi: int, total, base, lo: int, hi: int, sentinel, keep):
-    # First pixel of a path: L_r(p, d) = C(p, d) on the window; adds L_r into the sums
-    # (``keep`` = 0: overwrites them instead, for the first path of a pixel).
+def _start(c, mul, out, olo: int, ohi: int, total, base, rlo: int, rhi: int, lo: int, hi: int, sentinel, keep):
+    # First pixel of a path: L_r(p, d) = C(p, d) on the window [lo, hi), the sentinel on the
+    # rest of the run [rlo, rhi); adds L_r into the sums (``keep`` = 0: overwrites them, for
+    # the first path of a pixel).
     mul16 = np.int16(mul)
+    ulo = np.uint64(lo)
+    uhi = np.uint64(hi)
     m = np.int16(INT16_MAX)
-    for d in range(np.uint64(lo), np.uint64(hi)):
-        v = np.int16(np.int16(c[d]) * mul16)
+    for d in range(np.uint64(rlo), np.uint64(rhi)):
+        v = np.int16(np.int16(c[base + d]) * mul16)
+        v = v if ulo <= d < uhi else sentinel
         out[d + U2] = v
         total[base + d] = np.uint16((total[base + d] & keep) + np.uint16(v))
         m = min(m, v)
-    _clear(out, olo, ohi, lo, hi, sentinel)
+    _clear(out, olo, ohi, rlo, rhi, sentinel)
     return m
 
 
 @njit(cache=True, inline="always")
-def _step(c, mul, prev, pmin, p1, p2, out, olo: int, ohi: int, total, base, lo: int, hi: int, sentinel, keep):
+def _step(c, mul, prev, pmin, p1, p2, out, olo: int, ohi: int, total, base, rlo: int, rhi: int, lo: int, hi: int,
+          sentinel, keep):
     # Eq. 13 on p's window [lo, hi). ``prev`` (the predecessor's path costs, indexed k + 2)
     # holds sentinels outside the predecessor's window, so hypotheses it does not reach take
-    # the jump term (L = C + P2) in the same branch-free loop, which LLVM vectorises. The sums
-    # are kept (``keep`` = 0xFFFF) or overwritten (0) without a branch.
+    # the jump term (L = C + P2) in the same branch-free loop, which LLVM vectorises. The loop
+    # runs over the run [rlo, rhi) ⊇ [lo, hi) (bounds on a coarse grid, so vector loops have
+    # no odd tails) and stores the sentinel outside the window: the result is that of the
+    # window alone. The sums are kept (``keep`` = 0xFFFF) or overwritten (0) without a branch.
     mul16 = np.int16(mul)
     pm = np.int16(pmin)
     jump = np.int16(pmin + p2)
     pp1 = np.int16(p1)
+    ulo = np.uint64(lo)
+    uhi = np.uint64(hi)
     m = np.int16(INT16_MAX)
-    for d in range(np.uint64(lo), np.uint64(hi)):
+    for d in range(np.uint64(rlo), np.uint64(rhi)):
         same = prev[d + U2]
         near = np.int16(min(prev[d + U1], prev[d + U3]) + pp1)
-        v = np.int16(np.int16(min(min(same, near), jump) - pm) + np.int16(np.int16(c[d]) * mul16))
+        v = np.int16(np.int16(min(min(same, near), jump) - pm) + np.int16(np.int16(c[base + d]) * mul16))
+        v = v if ulo <= d < uhi else sentinel
         out[d + U2] = v
         total[base + d] = np.uint16((total[base + d] & keep) + np.uint16(v))
         m = min(m, v)
-    _clear(out, olo, ohi, lo, hi, sentinel)
+    _clear(out, olo, ohi, rlo, rhi, sentinel)
     return m
 
 
@@ -109,21 +119,24 @@ def _put_costs(costs, y: int, x: int, c0, c1, c2) -> None:
 
 
 @njit(cache=True)
-def _pass_rows(cq, mul, pens, total, offset, win_lo, win_hi, dirs, forward: bool, i0: int, i1: int,
+def _pass_rows(cq, nd: int, mul, pens, total, offset, win_lo, win_hi, run_lo, run_hi, dirs, forward: bool, i0: int,
+               i1: int,
                fresh: bool, p1: int, lbuf, lslot, mins, hbuf, disp, disp_r, costs, costs_r, second, rbest,
                min_disp: int) -> None:
     """Rows ``i0 ≤ i < i1`` (in pass order) of one raster pass (:func:`.sgm._pass_rows`, windowed).
 
+    ``cq`` holds the matching costs on the runs (ragged, the layout of ``total``), ``nd`` is D.
     ``pens`` (K + 1, H, W) int16: P2 per pixel and direction (:func:`penalty_maps`). ``total``
     is the flat uint16 sum array, ``offset`` (H, W) int64 each pixel's first entry,
-    ``win_lo``/``win_hi`` (H, W) int32 its window. In the second phase the row's winners are
+    ``win_lo``/``win_hi`` (H, W) int32 its window and ``run_lo``/``run_hi`` the run of
+    hypotheses computed around it (sums are stored for the run). In the second phase the row's winners are
     taken (left, and right if ``disp_r`` is not empty) with their neighbouring sums in
     ``costs``/``costs_r`` (H, W, 3) float32 and, if ``second`` is not empty, the best sum more
     than one hypothesis from the left winner. ``lslot`` (K, 3, W, 2) int32 holds the window
     each path-cost buffer of ``lbuf`` holds (its entries outside are sentinels); ``hbuf`` (2,
     D + 4) is reset to sentinels here.
     """
-    h, w, nd = cq.shape
+    h, w = win_lo.shape
     nk = dirs.shape[0]
     s = 1 if forward else -1
     sentinel = np.int16(INT16_MAX - p1)  # sentinel + P1 still fits int16; never selected
@@ -140,27 +153,32 @@ def _pass_rows(cq, mul, pens, total, offset, win_lo, win_hi, dirs, forward: bool
         ring = i % 3
         lo_row = win_lo[y]
         hi_row = win_hi[y]
+        rlo_row = run_lo[y]
+        rhi_row = run_hi[y]
         off_row = offset[y]
         hmin = 0
         for j in range(w):
             x = j if forward else w - 1 - j
             lo = lo_row[x]
             hi = hi_row[x]
-            base = np.uint64(off_row[x] - lo)
+            rlo = rlo_row[x]
+            rhi = rhi_row[x]
+            base = np.uint64(off_row[x] - rlo)
             if j % 2 == 0:
                 olo, ohi = h_lo0, h_hi0
-                h_lo0, h_hi0 = lo, hi
+                h_lo0, h_hi0 = rlo, rhi
                 cur, prev = hbuf[0], hbuf[1]
             else:
                 olo, ohi = h_lo1, h_hi1
-                h_lo1, h_hi1 = lo, hi
+                h_lo1, h_hi1 = rlo, rhi
                 cur, prev = hbuf[1], hbuf[0]
             if j == 0:
-                hmin = _start(cq[y, x], mul, cur, olo, ohi, total, base, lo, hi, sentinel, hkeep)
+                hmin = _start(cq, mul, cur, olo, ohi, total, base, rlo, rhi, lo, hi, sentinel, hkeep)
             else:
                 # P2 between x and its predecessor x − s, stored at the right one of the two.
                 pen = pens[0, y, x] if forward else pens[0, y, x + 1]
-                hmin = _step(cq[y, x], mul, prev, hmin, p1, pen, cur, olo, ohi, total, base, lo, hi, sentinel, hkeep)
+                hmin = _step(cq, mul, prev, hmin, p1, pen, cur, olo, ohi, total, base, rlo, rhi, lo, hi,
+                             sentinel, hkeep)
         for k in range(nk):
             ip = i - dirs[k, 0]
             pr = ip % 3
@@ -169,18 +187,21 @@ def _pass_rows(cq, mul, pens, total, offset, win_lo, win_hi, dirs, forward: bool
                 xp = x - s * dirs[k, 1]
                 lo = lo_row[x]
                 hi = hi_row[x]
-                base = np.uint64(off_row[x] - lo)
+                rlo = rlo_row[x]
+                rhi = rhi_row[x]
+                base = np.uint64(off_row[x] - rlo)
                 olo = lslot[k, ring, x, 0]
                 ohi = lslot[k, ring, x, 1]
                 if ip < 0 or xp < 0 or xp >= w:
-                    mins[k, ring, x] = _start(cq[y, x], mul, lbuf[k, ring, x], olo, ohi, total, base, lo, hi,
-                                              sentinel, keep)
+                    mins[k, ring, x] = _start(cq, mul, lbuf[k, ring, x], olo, ohi, total, base, rlo, rhi, lo,
+                                              hi, sentinel, keep)
                 else:
                     pen = pens[k + 1, y, x] if forward else pens[k + 1, yp, xp]
-                    mins[k, ring, x] = _step(cq[y, x], mul, lbuf[k, pr, xp], mins[k, pr, xp], p1, pen,
-                                             lbuf[k, ring, x], olo, ohi, total, base, lo, hi, sentinel, keep)
-                lslot[k, ring, x, 0] = lo
-                lslot[k, ring, x, 1] = hi
+                    mins[k, ring, x] = _step(cq, mul, lbuf[k, pr, xp], mins[k, pr, xp], p1, pen,
+                                             lbuf[k, ring, x], olo, ohi, total, base, rlo, rhi, lo, hi, sentinel,
+                                             keep)
+                lslot[k, ring, x, 0] = rlo
+                lslot[k, ring, x, 1] = rhi
         if fresh:
             continue
         # The row's sums are complete: winners among hypotheses inside the window whose right
@@ -193,18 +214,24 @@ def _pass_rows(cq, mul, pens, total, offset, win_lo, win_hi, dirs, forward: bool
         for x in range(w):
             lo = lo_row[x]
             hi = hi_row[x]
-            base = np.uint64(off_row[x] - lo)
+            base = np.uint64(off_row[x] - rlo_row[x])
             k0 = max(0, x - min_disp - (w - 1), lo)
             k1 = min(nd - 1, x - min_disp, hi - 1)
             if k1 < k0:
                 disp[y, x] = INF
                 continue
-            best = np.uint32(0xFFFFFFFF)
-            for k in range(np.uint64(k0), np.uint64(k1 + 1)):
-                best = min(best, _pack(total[base + k], k))
-            kb = int(best & np.uint32(0xFFFF))
+            uk0 = np.uint64(k0)
+            uk1 = np.uint64(k1 + 1)
+            # Smallest sum (a vectorised reduction), then its first index: ties go to the
+            # smaller k (as in .sgm).
+            vmin = np.uint16(0xFFFF)
+            for k in range(uk0, uk1):
+                vmin = min(vmin, total[base + k])
+            kb = k0
+            while total[base + np.uint64(kb)] != vmin:
+                kb += 1
             disp[y, x] = np.float32(min_disp + kb)
-            c1 = np.float32(best >> np.uint32(16))
+            c1 = np.float32(vmin)
             c0 = _sum_at(total, base, k0, k1 + 1, kb - 1)
             c2 = _sum_at(total, base, k0, k1 + 1, kb + 1)
             _put_costs(costs, y, x, c0, c1, c2)
@@ -215,9 +242,12 @@ def _pass_rows(cq, mul, pens, total, offset, win_lo, win_hi, dirs, forward: bool
                         sec = min(sec, np.float32(total[base + np.uint64(k)]))
                 second[y, x] = sec
             if want_right:
-                rb = w - 1 - x + min_disp
-                for k in range(k0, k1 + 1):
-                    rbest[rb + k] = min(rbest[rb + k], _pack(total[base + np.uint64(k)], k))
+                # Right pixel xr = x − min_disp − k is slot W − 1 − xr = rb + k, which runs
+                # forward with k (contiguous, vectorised); rb may be negative, the unsigned sum
+                # wraps to the right slot.
+                rb = np.uint64(w - 1 - x + min_disp)
+                for k in range(uk0, uk1):
+                    rbest[rb + k] = min(rbest[rb + k], _pack(total[base + k], k))
         if want_right:
             for xr in range(w):
                 v = rbest[w - 1 - xr]
@@ -231,9 +261,9 @@ def _pass_rows(cq, mul, pens, total, offset, win_lo, win_hi, dirs, forward: bool
                 c0 = np.float32(-1.0)
                 c2 = np.float32(-1.0)
                 if x - 1 >= 0:
-                    c0 = _sum_at(total, np.uint64(off_row[x - 1] - lo_row[x - 1]), lo_row[x - 1], hi_row[x - 1], kb - 1)
+                    c0 = _sum_at(total, np.uint64(off_row[x - 1] - rlo_row[x - 1]), lo_row[x - 1], hi_row[x - 1], kb - 1)
                 if x + 1 < w:
-                    c2 = _sum_at(total, np.uint64(off_row[x + 1] - lo_row[x + 1]), lo_row[x + 1], hi_row[x + 1], kb + 1)
+                    c2 = _sum_at(total, np.uint64(off_row[x + 1] - rlo_row[x + 1]), lo_row[x + 1], hi_row[x + 1], kb + 1)
                 _put_costs(costs_r, y, xr, c0, c1, c2)
 
 
@@ -262,11 +292,11 @@ def penalty_maps(guide, dirs, p1: int, p2: int, gamma: float):
 
 
 @njit(cache=True, parallel=True)
-def sgm_window_two_pass(cq, mul: int, pens, total, offset, win_lo, win_hi, dirs, p1: int, min_disp: int,
-                        want_right: bool, want_second: bool):
+def sgm_window_two_pass(cq, nd: int, mul: int, pens, total, offset, win_lo, win_hi, run_lo, run_hi, dirs, p1: int,
+                        min_disp: int, want_right: bool, want_second: bool):
     """Both passes in two phases over the windows; returns ``(disp, disp_r, costs, costs_r,
     second)`` (the right-view arrays and ``second`` are empty when not wanted)."""
-    h, w, nd = cq.shape
+    h, w = win_lo.shape
     nk = dirs.shape[0]
     split = h // 2
     lbuf = np.full((2, nk, 3, w, nd + 4), INT16_MAX - p1, np.int16)
@@ -287,23 +317,23 @@ def sgm_window_two_pass(cq, mul: int, pens, total, offset, win_lo, win_hi, dirs,
             forward = t == 0
             first = split if forward else h - split
             i0, i1 = (0, first) if fresh else (first, h)
-            _pass_rows(cq, mul, pens, total, offset, win_lo, win_hi, dirs, forward, i0, i1, fresh, p1, lbuf[t],
+            _pass_rows(cq, nd, mul, pens, total, offset, win_lo, win_hi, run_lo, run_hi, dirs, forward, i0, i1, fresh, p1,
+                       lbuf[t],
                        lslot[t], mins[t], hbuf[t], disp, disp_r, costs, costs_r, second, rbest[t], min_disp)
     return disp, disp_r, costs, costs_r, second
 
 
 @njit(cache=True, parallel=True)
-def expand_sums(total, offset, win_lo, win_hi, nd: int):
-    """The dense (H, W, D) uint16 volume of ragged sums, ``S_MAX`` outside the windows (for
-    stages that need the whole volume)."""
+def expand_sums(total, offset, run_lo, win_lo, win_hi, nd: int):
+    """The dense (H, W, D) uint16 volume of ragged sums (stored from ``run_lo`` at ``offset``),
+    ``S_MAX`` outside the windows ``[win_lo, win_hi)`` (for stages that need the whole volume)."""
     h, w = win_lo.shape
     out = np.full((h, w, nd), S_MAX, np.uint16)
     for y in prange(h):
         for x in range(w):
-            lo = win_lo[y, x]
-            o = offset[y, x]
-            for k in range(lo, win_hi[y, x]):
-                out[y, x, k] = total[o + k - lo]
+            o = offset[y, x] - run_lo[y, x]
+            for k in range(win_lo[y, x], win_hi[y, x]):
+                out[y, x, k] = total[o + k]
     return out
 
 
@@ -315,32 +345,57 @@ def window_offsets(win_lo: np.ndarray, win_hi: np.ndarray) -> tuple[np.ndarray, 
     return offset.reshape(win_lo.shape), int(width.sum())
 
 
-def sgm_window(cq: np.ndarray, guide: np.ndarray, paths: int, p1: int, p2: int, gamma: float, min_disp: int,
-               win_lo: np.ndarray, win_hi: np.ndarray, want_right: bool = False, want_second: bool = False,
-               cost_mul: int = 1):
-    """Windowed SGM (module docstring) on integer costs ``cq`` (H, W, D) uint8/uint16.
+@njit(cache=True, parallel=True)
+def gather_runs(cq, run_lo, run_hi, offset, n: int):
+    """The entries of a dense (H, W, D) cost volume on each pixel's run, ragged (for costs
+    that offer no windowed kernel)."""
+    h, w = run_lo.shape
+    out = np.empty(n, cq.dtype)
+    for y in prange(h):
+        for x in range(w):
+            o = offset[y, x] - run_lo[y, x]
+            for k in range(run_lo[y, x], run_hi[y, x]):
+                out[o + k] = cq[y, x, k]
+    return out
 
-    ``win_lo``/``win_hi``: (H, W) int32 with ``0 ≤ lo < hi ≤ D``. Returns a dict with ``disparity``
-    and ``disparity_right`` (float32 integer winners, +inf where none; the right one None unless
-    wanted), ``costs``/``costs_right`` ((H, W, 3) float32 sums at the winner − 1, winner,
-    winner + 1; an undefined neighbour equals the winner's sum), ``second`` ((H, W) float32 or
-    None) and the ragged sums ``total``/``offset`` (for :func:`expand_sums`).
-    """
-    h, w, nd = cq.shape
-    if nd > 65535:
-        raise ValueError("SGM supports at most 65535 disparities")
+
+def window_runs(win_lo: np.ndarray, win_hi: np.ndarray, nd: int, align: int = 16):
+    """Checked windows and the runs the kernel computes: ``(lo, hi, run_lo, run_hi, offset,
+    n)``. Runs enclose the windows with bounds on a grid of ``align`` hypotheses (clipped to
+    D), so vector loops run whole; ``offset`` (H, W) int64 and ``n`` place them in the flat
+    arrays of costs and sums."""
     lo = np.ascontiguousarray(win_lo, dtype=np.int32)
     hi = np.ascontiguousarray(win_hi, dtype=np.int32)
-    if lo.shape != (h, w) or hi.shape != (h, w) or lo.min() < 0 or hi.max() > nd or np.any(hi <= lo):
+    if nd > 65535:
+        raise ValueError("SGM supports at most 65535 disparities")
+    if lo.shape != hi.shape or lo.min() < 0 or hi.max() > nd or np.any(hi <= lo):
         raise ValueError("SGM windows must satisfy 0 <= lo < hi <= D for every pixel")
-    offset, n = window_offsets(lo, hi)
+    step = max(1, int(align))
+    run_lo = (lo // step * step).astype(np.int32)
+    run_hi = np.minimum(-(-hi // step) * step, nd).astype(np.int32)
+    offset, n = window_offsets(run_lo, run_hi)
+    return lo, hi, run_lo, run_hi, offset, n
+
+
+def sgm_window(costs: np.ndarray, runs, nd: int, guide: np.ndarray, paths: int, p1: int, p2: int, gamma: float,
+               min_disp: int, want_right: bool = False, want_second: bool = False, cost_mul: int = 1):
+    """Windowed SGM (module docstring) on integer costs stored ragged on the runs.
+
+    ``runs``: :func:`window_runs` of the windows; ``costs``: uint8/uint16 flat array in that
+    layout (e.g. :func:`gather_runs`, or a cost's own windowed kernel). Returns a dict with
+    ``disparity`` and ``disparity_right`` (float32 integer winners, +inf where none; the right
+    one None unless wanted), ``costs``/``costs_right`` ((H, W, 3) float32 sums at the winner − 1,
+    winner, winner + 1; an undefined neighbour equals the winner's sum), ``second`` ((H, W)
+    float32 or None) and the ragged sums ``total`` (for :func:`expand_sums`).
+    """
+    lo, hi, run_lo, run_hi, offset, n = runs
     total = np.empty(n, np.uint16)
     guide = np.ascontiguousarray(guide, dtype=np.float32)
     dirs = DOWN_DIRECTIONS[paths]
     pens = penalty_maps(guide, dirs, int(p1), int(p2), float(gamma))
-    disp, disp_r, costs, costs_r, second = sgm_window_two_pass(
-        cq, int(cost_mul), pens, total, offset, lo, hi, dirs, int(p1), int(min_disp), bool(want_right),
-        bool(want_second))
-    return {"disparity": disp, "disparity_right": disp_r if want_right else None, "costs": costs,
-            "costs_right": costs_r if want_right else None, "second": second if want_second else None,
-            "total": total, "offset": offset, "lo": lo, "hi": hi}
+    disp, disp_r, wcosts, wcosts_r, second = sgm_window_two_pass(
+        costs, int(nd), int(cost_mul), pens, total, offset, lo, hi, run_lo, run_hi, dirs, int(p1), int(min_disp),
+        bool(want_right), bool(want_second))
+    return {"disparity": disp, "disparity_right": disp_r if want_right else None, "costs": wcosts,
+            "costs_right": wcosts_r if want_right else None, "second": second if want_second else None,
+            "total": total}

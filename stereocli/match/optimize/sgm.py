@@ -14,6 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
+from numba import njit, prange
 
 from ...errors import ConfigError
 from ...registry import param, register
@@ -36,6 +37,7 @@ class SGMParams:
     margin: int = param(2, "coarse-to-fine: hypotheses beyond the coarse neighbourhood's range, each side", unit="px", low=0, high=64)
     radius: int = param(1, "coarse-to-fine: neighbourhood radius at the coarse level", unit="coarse px", low=0, high=8)
     max_window: int = param(0, "coarse-to-fine: most hypotheses per pixel (0 = as the neighbourhood needs)", low=0, high=4096)
+    align: int = param(16, "coarse-to-fine: the kernel computes each window within a run of hypotheses on this grid (whole vector loops; same result)", low=1, high=64)
     coarse_paths: int = param(0, "coarse-to-fine: path directions at the coarse level (0 = paths)", choices=(0, 2, 4, 8, 16))
 
 
@@ -55,16 +57,57 @@ def quantization(cost_max: float, paths: int, p1: float, p2: float, levels: int)
     return scale, max(cap, 1), int(round(p1 * levels)), int(round(p2 * levels))
 
 
+@njit(cache=True, parallel=True)
+def half_resolution(image: np.ndarray) -> np.ndarray:
+    """2×2 mean of an (H, W) or (H, W, C) float32 image: (ceil(H/2), ceil(W/2)[, C]); an odd
+    last row/column averages what it has. (Compiled rather than cv2.resize: OpenCV's worker
+    threads keep spinning after a call and would slow the numba kernels that follow.)"""
+    h, w = image.shape[0], image.shape[1]
+    h2, w2 = (h + 1) // 2, (w + 1) // 2
+    img = image.reshape(h, w, -1)
+    nc = img.shape[2]
+    out = np.empty((h2, w2, nc), np.float32)
+    for y in prange(h2):
+        y0 = 2 * y
+        y1 = min(2 * y + 1, h - 1)
+        for x in range(w2):
+            x0 = 2 * x
+            x1 = min(2 * x + 1, w - 1)
+            for c in range(nc):
+                out[y, x, c] = np.float32(0.25) * (img[y0, x0, c] + img[y0, x1, c] + img[y1, x0, c] + img[y1, x1, c])
+    return out
+
+
+@njit(cache=True, parallel=True)
+def _neighbourhood_range(disp: np.ndarray, radius: int):
+    """Min and max of the finite values of ``disp`` within ``radius`` (a square), +inf/−inf
+    where there is none."""
+    h, w = disp.shape
+    lo = np.full((h, w), np.inf, np.float32)
+    hi = np.full((h, w), -np.inf, np.float32)
+    for y in prange(h):
+        for x in range(w):
+            a = np.float32(np.inf)
+            b = np.float32(-np.inf)
+            for yy in range(max(0, y - radius), min(h, y + radius + 1)):
+                for xx in range(max(0, x - radius), min(w, x + radius + 1)):
+                    v = disp[yy, xx]
+                    if np.isfinite(v):
+                        a = min(a, v)
+                        b = max(b, v)
+            lo[y, x] = a
+            hi[y, x] = b
+    return lo, hi
+
+
 def coarse_disparity(state: MatchState, p: SGMParams) -> np.ndarray:
     """Left disparities of the pair at half resolution (full range, same cost and SGM), LR
     checked (±1 coarse px); (ceil(H/2), ceil(W/2)) float32 in coarse px, +inf where rejected."""
-    import cv2
-
     h, w = state.shape
-    h2, w2 = (h + 1) // 2, (w + 1) // 2
 
     def half(img: np.ndarray) -> np.ndarray:
-        return np.ascontiguousarray(cv2.resize(img, (w2, h2), interpolation=cv2.INTER_AREA), dtype=np.float32)
+        out = half_resolution(np.ascontiguousarray(img, dtype=np.float32))
+        return out[..., 0] if img.ndim == 2 else out
 
     def half_mask(mask):
         return None if mask is None else half(mask.astype(np.float32)) > 0.999
@@ -82,6 +125,7 @@ def coarse_disparity(state: MatchState, p: SGMParams) -> np.ndarray:
         mask_invalid_right(sub.cost, sub.right_valid, sub.min_disp, np.float32(sub.cost_max))
     run_sgm(sub, replace(p, paths=p.coarse_paths or p.paths), coarse=False)
     dl, dr = sub.disparity, sub.disparity_right
+    w2 = dl.shape[1]
     xs = np.arange(w2)[None, :] - np.where(np.isfinite(dl), dl, 0).astype(np.int64)
     ok = np.isfinite(dl) & (xs >= 0)
     back = np.take_along_axis(dr, np.clip(xs, 0, w2 - 1), axis=1)
@@ -94,15 +138,8 @@ def search_windows(coarse: np.ndarray, shape: tuple[int, int], min_disp: int, nd
     """Per-pixel hypothesis windows ``[lo, hi)`` (volume indices, (H, W) int32) from coarse
     disparities: the range of the valid coarse disparities within ``radius`` coarse pixels,
     doubled, plus ``margin`` px each side; the full range where none is valid."""
-    import cv2
-
     h, w = shape
-    valid = np.isfinite(coarse)
-    size = 2 * radius + 1
-    kernel = np.ones((size, size), np.uint8)
-    big = np.float32(1e9)
-    nmin = cv2.erode(np.where(valid, coarse, big), kernel, borderType=cv2.BORDER_REPLICATE)
-    nmax = cv2.dilate(np.where(valid, coarse, -big), kernel, borderType=cv2.BORDER_REPLICATE)
+    nmin, nmax = _neighbourhood_range(np.ascontiguousarray(coarse, dtype=np.float32), int(radius))
     seen = nmax >= nmin
     lo = np.where(seen, 2 * nmin - margin - min_disp, 0)
     hi = np.where(seen, 2 * nmax + margin + 1 - min_disp, ndisp)
@@ -120,53 +157,95 @@ def search_windows(coarse: np.ndarray, shape: tuple[int, int], min_disp: int, nd
     return lo, hi
 
 
-def run_sgm(state: MatchState, p: SGMParams, coarse: bool | None = None) -> None:
-    """Run SGM on ``state.cost``; sets ``disparity`` and replaces ``cost`` by the uint16 sums."""
-    if state.cost is None:
-        raise ConfigError("optimizer.sgm: no cost volume (the cost stage did not run)")
-    window = None
-    if (p.coarse if coarse is None else coarse) and state.cost_call is not None and state.ndisp > 4:
-        c = coarse_disparity(state, p)
-        window = search_windows(c, state.shape, state.min_disp, state.ndisp, p.margin, p.radius, p.max_window)
-    cost = state.cost
-    scale, cap, p1, p2 = quantization(state.cost_max, p.paths, p.p1, p.p2, p.levels)
+def _integer_costs(cost_max: float, dtype, p: SGMParams) -> tuple[int, float, int, int, int] | None:
+    """``(mul, scale, cap, p1, p2)`` when integer costs (e.g. census Hamming distances) can be
+    used as they are, times an integer factor inside the kernel (no quantised copy); else None."""
+    scale, cap, p1, p2 = quantization(cost_max, p.paths, p.p1, p.p2, p.levels)
     mul = int(scale)
-    if cost.dtype in (np.uint8, np.uint16) and mul >= 1:
-        # Integer costs (e.g. census Hamming distances): used as they are, times an integer
-        # factor inside the kernel, so no quantised copy is made.
+    if dtype not in (np.uint8, np.uint16) or mul < 1:
+        return None
+    cap = int(round(cost_max)) * mul
+    return mul, float(mul), cap, int(round(p.p1 * cap)), int(round(max(p.p2, p.p1) * cap))
+
+
+def _quantized(state: MatchState, p: SGMParams) -> tuple[np.ndarray, int, float, int, int]:
+    """``state.cost`` as integers for the kernels: ``(cq, mul, scale, p1, p2)``; releases the
+    float volume (peak memory, see the module docstring)."""
+    cost = state.cost
+    exact = _integer_costs(state.cost_max, cost.dtype, p)
+    if exact is not None:
+        mul, scale, _, p1, p2 = exact
         cq = cost
-        scale, cap = float(mul), int(round(state.cost_max)) * mul
-        p1, p2 = int(round(p.p1 * cap)), int(round(max(p.p2, p.p1) * cap))
     else:
+        scale, cap, p1, p2 = quantization(state.cost_max, p.paths, p.p1, p.p2, p.levels)
         mul = 1
         cq = np.empty(cost.shape, np.uint8 if cap <= 255 else np.uint16)
         ks.quantize(np.asarray(cost, np.float32), scale, cap, cq)
-    # Release the float volume before allocating the sums (peak memory, see module docstring).
     state.cost = None
-    del cost
+    return cq, mul, scale, p1, p2
+
+
+def _run_windowed(state: MatchState, p: SGMParams) -> None:
+    """Coarse-to-fine SGM: windows from the half-resolution disparities, costs on the windows
+    only (the cost stage's ``windowed`` kernel, else its dense volume gathered), windowed
+    SGM. Leaves ``winner`` (or, if a later stage needs it, the dense sums in ``cost``)."""
+    coarse = coarse_disparity(state, p)
+    lo, hi = search_windows(coarse, state.shape, state.min_disp, state.ndisp, p.margin, p.radius, p.max_window)
+    runs = kw.window_runs(lo, hi, state.ndisp, p.align)
+    call = state.cost_call
+    windowed = getattr(call.stage.func, "windowed", None)
+    if windowed is not None and state.cost is None:
+        costs, state.cost_max = windowed(state, call.params, runs)
+        exact = _integer_costs(state.cost_max, costs.dtype, p)
+    else:
+        exact = None
+    if exact is not None:
+        mul, scale, _, p1, p2 = exact
+    else:
+        if state.cost is None:  # the pipeline left the cost to this stage
+            from ..kernels.cost import mask_invalid_right
+
+            call.stage.func(state, call.params)
+            if state.right_valid is not None:
+                mask_invalid_right(state.cost, state.right_valid, state.min_disp, np.float32(state.cost_max))
+        cq, mul, scale, p1, p2 = _quantized(state, p)
+        costs = kw.gather_runs(cq, runs[2], runs[3], runs[4], runs[5])
+        del cq
     guide = np.ascontiguousarray(state.gray("left"), dtype=np.float32)
+    run = kw.sgm_window(costs, runs, state.ndisp, guide, p.paths, p1, p2, float(p.p2_gamma), state.min_disp,
+                        state.want_right, state.want_second, cost_mul=mul)
+    del costs
     state.extras["sgm_scale"] = scale
     state.cost_max = float(S_MAX)
-    if window is not None:
-        run = kw.sgm_window(cq, guide, p.paths, p1, p2, float(p.p2_gamma), state.min_disp, window[0], window[1],
-                            state.want_right, state.want_second, cost_mul=mul)
-        del cq
-        state.disparity = run["disparity"]
-        if state.want_right:
-            state.disparity_right = run["disparity_right"]
-        if state.volume_needed:
-            state.cost = kw.expand_sums(run["total"], run["offset"], run["lo"], run["hi"], state.ndisp)
-        else:
-            state.winner = WinnerCosts(run["disparity"].copy(), run["costs"], run["costs_right"],
-                                       None if run["disparity_right"] is None else run["disparity_right"].copy(),
-                                       run["second"])
+    state.disparity = run["disparity"]
+    if state.want_right:
+        state.disparity_right = run["disparity_right"]
+    if state.volume_needed:
+        state.cost = kw.expand_sums(run["total"], runs[4], runs[2], lo, hi, state.ndisp)
+    else:
+        state.winner = WinnerCosts(run["disparity"].copy(), run["costs"], run["costs_right"],
+                                   None if run["disparity_right"] is None else run["disparity_right"].copy(),
+                                   run["second"])
+
+
+def run_sgm(state: MatchState, p: SGMParams, coarse: bool | None = None) -> None:
+    """Run SGM on ``state.cost``; sets ``disparity`` and replaces ``cost`` by the uint16 sums
+    (coarse-to-fine: see :func:`_run_windowed`)."""
+    if (p.coarse if coarse is None else coarse) and state.cost_call is not None and state.ndisp > 4:
+        _run_windowed(state, p)
         return
+    if state.cost is None:
+        raise ConfigError("optimizer.sgm: no cost volume (the cost stage did not run)")
+    cq, mul, scale, p1, p2 = _quantized(state, p)
+    guide = np.ascontiguousarray(state.gray("left"), dtype=np.float32)
     acc, state.disparity, right = ks.sgm_aggregate(cq, guide, p.paths, p1, p2, float(p.p2_gamma),
                                                    state.min_disp, state.want_right, cost_mul=mul)
     if right is not None:
         state.disparity_right = right
     del cq
     state.cost = acc
+    state.cost_max = float(S_MAX)
+    state.extras["sgm_scale"] = scale
 
 
 @register("optimizer", "sgm", SGMParams)
@@ -200,3 +279,5 @@ def _buffer_bytes(p: SGMParams, width: int, ndisp: int) -> float:
 
 
 sgm.buffer_bytes = _buffer_bytes
+# Coarse-to-fine runs the cost stage itself (at half resolution, then on the windows only).
+sgm.runs_cost = lambda p: p.coarse
