@@ -408,8 +408,10 @@ def _run_volume_stages(sub: MatchState, config: PipelineConfig, volume_stages, t
                                                              "accepts_integer_cost", False)
     sub.cost_call = call
     # An optimizer that computes the costs itself (coarse-to-fine SGM: on its windows only)
-    # says so with ``runs_cost(params)``; it then honours ``right_valid`` too.
-    if not getattr(config.optimizer.stage.func, "runs_cost", lambda params: False)(config.optimizer.params):
+    # says so with ``runs_cost(params)``; it then honours ``right_valid`` too. Aggregation
+    # stages need the whole volume, so with them the cost stage always runs here.
+    runs_cost = getattr(config.optimizer.stage.func, "runs_cost", lambda params: False)(config.optimizer.params)
+    if config.aggregation or not runs_cost:
         _timed(timings, f"cost.{call.stage.name}", call.stage.func, sub, call.params)
         if sub.right_valid is not None:
             mask_invalid_right(sub.cost, sub.right_valid, sub.min_disp, np.float32(sub.cost_max))

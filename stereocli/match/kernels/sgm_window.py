@@ -308,8 +308,8 @@ def sgm_window_two_pass(cq, nd: int, mul: int, pens, total, offset, win_lo, win_
     wr = w if want_right else 0
     disp = np.empty((h, w), np.float32)
     disp_r = np.full((hr, wr), INF, np.float32)
-    costs = np.zeros((h, w, 3), np.float32)
-    costs_r = np.zeros((hr, wr, 3), np.float32)
+    costs = np.empty((h, w, 3), np.float32)  # written wherever a winner is (only read there)
+    costs_r = np.empty((hr, wr, 3), np.float32)
     second = np.zeros((h if want_second else 0, w if want_second else 0), np.float32)
     for phase in range(2):
         fresh = phase == 0

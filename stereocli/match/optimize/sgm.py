@@ -39,6 +39,7 @@ class SGMParams:
     max_window: int = param(0, "coarse-to-fine: most hypotheses per pixel (0 = as the neighbourhood needs)", low=0, high=4096)
     align: int = param(16, "coarse-to-fine: the kernel computes each window within a run of hypotheses on this grid (whole vector loops; same result)", low=1, high=64)
     coarse_paths: int = param(0, "coarse-to-fine: path directions at the coarse level (0 = paths)", choices=(0, 2, 4, 8, 16))
+    coarse_levels: int = param(1, "coarse-to-fine: coarser levels below full resolution (each halves the image; only the coarsest searches the full range)", low=1, high=4)
 
 
 def quantization(cost_max: float, paths: int, p1: float, p2: float, levels: int) -> tuple[float, int, int, int]:
@@ -79,25 +80,39 @@ def half_resolution(image: np.ndarray) -> np.ndarray:
 
 
 @njit(cache=True, parallel=True)
-def _neighbourhood_range(disp: np.ndarray, radius: int):
-    """Min and max of the finite values of ``disp`` within ``radius`` (a square), +inf/−inf
-    where there is none."""
-    h, w = disp.shape
-    lo = np.full((h, w), np.inf, np.float32)
-    hi = np.full((h, w), -np.inf, np.float32)
-    for y in prange(h):
-        for x in range(w):
+def _windows_from_coarse(coarse: np.ndarray, h: int, w: int, min_disp: int, ndisp: int, margin: int, radius: int):
+    """(H, W) int32 ``lo``/``hi`` volume indices: each pixel's coarse parent (y // 2, x // 2)
+    contributes the min and max of the finite coarse disparities within ``radius``, doubled,
+    ± ``margin``; the full range where none is finite. Clipped to [0, D) and never empty."""
+    h2, w2 = coarse.shape
+    clo = np.empty((h2, w2), np.int32)
+    chi = np.empty((h2, w2), np.int32)
+    for y in prange(h2):
+        for x in range(w2):
             a = np.float32(np.inf)
             b = np.float32(-np.inf)
-            for yy in range(max(0, y - radius), min(h, y + radius + 1)):
-                for xx in range(max(0, x - radius), min(w, x + radius + 1)):
-                    v = disp[yy, xx]
+            for yy in range(max(0, y - radius), min(h2, y + radius + 1)):
+                for xx in range(max(0, x - radius), min(w2, x + radius + 1)):
+                    v = coarse[yy, xx]
                     if np.isfinite(v):
                         a = min(a, v)
                         b = max(b, v)
-            lo[y, x] = a
-            hi[y, x] = b
-    return lo, hi
+            if b >= a:
+                lo = int(2 * a) - margin - min_disp
+                hi = int(2 * b) + margin + 1 - min_disp
+            else:
+                lo = 0
+                hi = ndisp
+            lo = min(max(lo, 0), ndisp - 1)
+            clo[y, x] = lo
+            chi[y, x] = min(max(hi, lo + 1), ndisp)
+    lo_map = np.empty((h, w), np.int32)
+    hi_map = np.empty((h, w), np.int32)
+    for y in prange(h):
+        for x in range(w):
+            lo_map[y, x] = clo[y // 2, x // 2]
+            hi_map[y, x] = chi[y // 2, x // 2]
+    return lo_map, hi_map
 
 
 def coarse_disparity(state: MatchState, p: SGMParams) -> np.ndarray:
@@ -118,12 +133,17 @@ def coarse_disparity(state: MatchState, p: SGMParams) -> np.ndarray:
                      half_mask(state.right_valid), want_right=True, integer_cost_ok=state.integer_cost_ok,
                      threads=state.threads)
     call = state.cost_call
-    call.stage.func(sub, call.params)
-    if sub.right_valid is not None:
-        from ..kernels.cost import mask_invalid_right
+    sub.cost_call = call
+    deeper = p.coarse_levels > 1 and sub.ndisp > 4
+    if deeper:  # this level is itself searched coarse-to-fine; it computes its own costs
+        sub.volume_needed = False
+    else:
+        call.stage.func(sub, call.params)
+        if sub.right_valid is not None:
+            from ..kernels.cost import mask_invalid_right
 
-        mask_invalid_right(sub.cost, sub.right_valid, sub.min_disp, np.float32(sub.cost_max))
-    run_sgm(sub, replace(p, paths=p.coarse_paths or p.paths), coarse=False)
+            mask_invalid_right(sub.cost, sub.right_valid, sub.min_disp, np.float32(sub.cost_max))
+    run_sgm(sub, replace(p, paths=p.coarse_paths or p.paths, coarse_levels=p.coarse_levels - 1), coarse=deeper)
     dl, dr = sub.disparity, sub.disparity_right
     w2 = dl.shape[1]
     xs = np.arange(w2)[None, :] - np.where(np.isfinite(dl), dl, 0).astype(np.int64)
@@ -139,14 +159,8 @@ def search_windows(coarse: np.ndarray, shape: tuple[int, int], min_disp: int, nd
     disparities: the range of the valid coarse disparities within ``radius`` coarse pixels,
     doubled, plus ``margin`` px each side; the full range where none is valid."""
     h, w = shape
-    nmin, nmax = _neighbourhood_range(np.ascontiguousarray(coarse, dtype=np.float32), int(radius))
-    seen = nmax >= nmin
-    lo = np.where(seen, 2 * nmin - margin - min_disp, 0)
-    hi = np.where(seen, 2 * nmax + margin + 1 - min_disp, ndisp)
-    lo = np.repeat(np.repeat(lo, 2, 0), 2, 1)[:h, :w]
-    hi = np.repeat(np.repeat(hi, 2, 0), 2, 1)[:h, :w]
-    lo = np.clip(lo, 0, ndisp - 1).astype(np.int32)
-    hi = np.clip(hi, lo + 1, ndisp).astype(np.int32)
+    lo, hi = _windows_from_coarse(np.ascontiguousarray(coarse, dtype=np.float32), h, w, int(min_disp), int(ndisp),
+                                  int(margin), int(radius))
     if max_window > 0:
         wide = hi - lo > max_window
         own = np.repeat(np.repeat(coarse, 2, 0), 2, 1)[:h, :w]
