@@ -354,7 +354,8 @@ def _strip_state(state: MatchState, a: int, b: int) -> MatchState:
     if a == 0 and b == state.shape[0]:
         return MatchState(state.left, state.right, state.min_disp, state.ndisp, state.left_valid,
                           state.right_valid, want_right=state.want_right, keep_integer=state.keep_integer,
-                          want_confidence=state.want_confidence, threads=state.threads, extras=state.extras)
+                          want_confidence=state.want_confidence, threads=state.threads, extras=state.extras,
+                          gray_cache=state.gray_cache)
     crop = lambda m: None if m is None else np.ascontiguousarray(m[a:b])  # noqa: E731
     return MatchState(crop(state.left), crop(state.right), state.min_disp, state.ndisp,
                       crop(state.left_valid), crop(state.right_valid), want_right=state.want_right,
