@@ -41,13 +41,16 @@ def arms_reference(image: np.ndarray, tau1: float, tau2: float, l1: int, l2: int
     return arms
 
 
-def vote_reference(disp, arms, min_disp, ndisp, min_votes, min_share):
+def vote_reference(disp, arms, min_disp, ndisp, min_votes, min_share, stride=1):
+    # stride > 1: the support sampled on a grid of that step through the pixel, min_votes
+    # counted on the full region (divided by stride²).
     out = disp.copy()
     h, w = disp.shape
+    min_votes = max(1, -(-min_votes // (stride * stride)))
     for y, x in zip(*np.nonzero(~np.isfinite(disp))):
         votes = []
-        for yy in range(y - arms[y, x, 2], y + arms[y, x, 3] + 1):
-            row = disp[yy, x - arms[yy, x, 0]: x + arms[yy, x, 1] + 1]
+        for yy in range(y - arms[y, x, 2] // stride * stride, y + arms[y, x, 3] + 1, stride):
+            row = disp[yy, x - arms[yy, x, 0] // stride * stride: x + arms[yy, x, 1] + 1: stride]
             votes.extend(row[np.isfinite(row)].tolist())
         votes = np.array(votes)
         if votes.size < min_votes or votes.size == 0:
@@ -105,6 +108,21 @@ def test_region_vote_matches_reference_and_fills_from_own_region():
     filled = holes & np.isfinite(got)
     assert filled.sum() > 0.9 * holes.sum()
     assert np.abs(got[filled] - truth[filled]).max() < 0.5  # never takes the other region's value
+
+
+@pytest.mark.parametrize("stride", [2, 3])
+def test_region_vote_on_a_sampling_grid_matches_reference(stride):
+    rng = np.random.default_rng(stride)
+    h, w = 32, 44
+    img = np.zeros((h, w, 3), np.float32)
+    img[:, w // 2:] = 200.0
+    disp = np.where(np.arange(w)[None, :] < w // 2, 4.0, 11.0).astype(np.float32).repeat(h, 0)
+    disp = disp + rng.normal(0, 0.2, disp.shape).astype(np.float32)
+    disp[rng.random((h, w)) < 0.3] = np.inf
+    arms = ka.cross_arms_two_threshold(img, 20.0, 6.0, 12, 6)
+    got = kv.region_vote(disp, arms, 0, 16, 20, 0.4, stride)
+    np.testing.assert_allclose(got, vote_reference(disp, arms, 0, 16, 20, 0.4, stride), rtol=0, atol=1e-5)
+    assert np.isfinite(got).sum() > np.isfinite(disp).sum()
 
 
 def test_region_vote_thresholds_leave_undecided_pixels_invalid():

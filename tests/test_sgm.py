@@ -42,11 +42,12 @@ def run(left, right, sets, min_disp=0, ndisp=16, **kw):
     return match_pair(left, right, cfg, min_disp=min_disp, ndisp=ndisp, **kw)
 
 
+@pytest.mark.parametrize("coarse", ["true", "false"])
 @pytest.mark.parametrize("paths", [2, 4, 8, 16])
-def test_fronto_parallel_plane_each_path_count(paths):
+def test_fronto_parallel_plane_each_path_count(paths, coarse):
     gt = np.full((48, 80), 5.0, np.float32)
     left, right = warp_pair(gt)
-    res = run(left, right, [f"optimizer.paths={paths}"], ndisp=16)
+    res = run(left, right, [f"optimizer.paths={paths}", f"optimizer.coarse={coarse}"], ndisp=16)
     assert bad(res.disparity, gt, 16) < 0.01
     assert res.disparity.dtype == np.float32 and np.all(np.isfinite(res.disparity))
 

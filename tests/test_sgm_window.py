@@ -1,0 +1,221 @@
+"""Coarse-to-fine SGM: the windowed kernel against a pure-numpy reference, the windowed census
+costs, the search windows, and the pipeline around them (winner costs, dense fallback)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from stereocli.config import build_config
+from stereocli.match.kernels import cost as kc
+from stereocli.match.kernels import sgm as ks
+from stereocli.match.kernels import sgm_window as kw
+from stereocli.match.optimize import sgm as osgm
+from stereocli.match.pipeline import match_pair
+from test_kernels_sgm import _penalty
+from test_sgm import bad, run, warp_pair
+
+BIG = 10**9
+
+
+def reference_window_sgm(cq, guide, paths, p1, p2, gamma, lo, hi):
+    """Σ_r L_r on each pixel's window [lo, hi) (Hirschmüller eq. 13 with L = +∞ outside a
+    window); S_MAX outside the windows."""
+    h, w, nd = cq.shape
+    down = [tuple(r) for r in ks.DOWN_DIRECTIONS[paths]]
+    offsets = [(0, 1), (0, -1)] + down + [(-dy, -dx) for dy, dx in down]
+    inwin = np.zeros((h, w, nd), bool)
+    for y in range(h):
+        for x in range(w):
+            inwin[y, x, lo[y, x]:hi[y, x]] = True
+    total = np.zeros((h, w, nd), np.int64)
+    for ry, rx in offsets:
+        lr = np.full((h, w, nd), BIG, np.int64)
+        ys = range(h) if ry >= 0 else range(h - 1, -1, -1)
+        xs = list(range(w)) if rx >= 0 else list(range(w - 1, -1, -1))
+        for y in ys:
+            for x in xs:
+                c = cq[y, x].astype(np.int64)
+                yp, xp = y - ry, x - rx
+                if not (0 <= yp < h and 0 <= xp < w):
+                    val = c
+                else:
+                    prev = lr[yp, xp]
+                    m = prev.min()
+                    pen2 = _penalty(float(guide[y, x]), float(guide[yp, xp]), p1, p2, gamma)
+                    up = np.concatenate([prev[1:], [BIG]])
+                    dn = np.concatenate([[BIG], prev[:-1]])
+                    val = c + np.minimum.reduce([prev, up + p1, dn + p1, np.full(nd, m + pen2)]) - m
+                lr[y, x] = np.where(inwin[y, x], val, BIG)
+        total += np.where(inwin, lr, 0)
+    return np.where(inwin, total, kw.S_MAX)
+
+
+def _windowed(cq, guide, paths, lo, hi, align, min_disp=0, want_second=True):
+    runs = kw.window_runs(lo, hi, cq.shape[2], align)
+    costs = kw.gather_runs(cq, runs[2], runs[3], runs[4], runs[5])
+    r = kw.sgm_window(costs, runs, cq.shape[2], guide, paths, 3, 20, 4.0, min_disp, True, want_second)
+    dense = kw.expand_sums(r["total"], runs[4], runs[2], runs[0], runs[1], cq.shape[2])
+    return r, dense
+
+
+def _random_windows(rng, h, w, nd, widest):
+    lo = rng.integers(0, nd - 1, (h, w)).astype(np.int32)
+    hi = np.minimum(nd, lo + rng.integers(1, widest + 1, (h, w))).astype(np.int32)
+    return lo, hi
+
+
+@pytest.mark.parametrize("paths", [2, 4, 8, 16])
+@pytest.mark.parametrize("align", [1, 4, 8])
+def test_windowed_kernel_equals_reference(paths, align):
+    rng = np.random.default_rng(paths * 10 + align)
+    h, w, nd = 11, 15, 9
+    cq = rng.integers(0, 40, (h, w, nd)).astype(np.uint8)
+    guide = rng.integers(0, 255, (h, w)).astype(np.float32)
+    lo, hi = _random_windows(rng, h, w, nd, 5)
+    _, dense = _windowed(cq, guide, paths, lo, hi, align)
+    np.testing.assert_array_equal(dense.astype(np.int64), reference_window_sgm(cq, guide, paths, 3, 20, 4.0, lo, hi))
+
+
+@pytest.mark.parametrize("paths", [4, 8])
+def test_full_windows_equal_the_dense_kernel(paths):
+    rng = np.random.default_rng(paths)
+    h, w, nd = 12, 16, 9
+    cq = rng.integers(0, 40, (h, w, nd)).astype(np.uint8)
+    guide = rng.integers(0, 255, (h, w)).astype(np.float32)
+    lo = np.zeros((h, w), np.int32)
+    hi = np.full((h, w), nd, np.int32)
+    r, dense = _windowed(cq, guide, paths, lo, hi, 8, min_disp=-2)
+    s, d, dr = ks.sgm_aggregate(cq, guide, paths, 3, 20, 4.0, -2, True)
+    np.testing.assert_array_equal(dense, s)
+    np.testing.assert_array_equal(r["disparity"], d)
+    np.testing.assert_array_equal(r["disparity_right"], dr)
+
+
+def test_winner_costs_match_the_sums():
+    rng = np.random.default_rng(5)
+    h, w, nd = 10, 18, 12
+    cq = rng.integers(0, 40, (h, w, nd)).astype(np.uint8)
+    guide = rng.integers(0, 255, (h, w)).astype(np.float32)
+    lo, hi = _random_windows(rng, h, w, nd, 7)
+    r, dense = _windowed(cq, guide, 4, lo, hi, 4)
+    for y in range(h):
+        for x in range(w):
+            k0, k1 = max(0, x - (w - 1), lo[y, x]), min(nd - 1, x, hi[y, x] - 1)
+            if k1 < k0:
+                assert np.isinf(r["disparity"][y, x])
+                continue
+            row = dense[y, x].astype(np.int64)
+            k = int(r["disparity"][y, x])
+            assert k == k0 + int(np.argmin(row[k0:k1 + 1]))  # first minimum in window and image
+            c = r["costs"][y, x]
+            assert c[1] == row[k]
+            if k - 1 >= k0 and k + 1 <= k1:
+                assert (c[0], c[2]) == (row[k - 1], row[k + 1])
+            else:  # an undefined neighbour: both equal the winner, so a fit keeps the integer
+                assert c[0] == c[1] == c[2]
+            beyond = [row[j] for j in range(k0, k1 + 1) if abs(j - k) > 1]
+            assert r["second"][y, x] == (min(beyond) if beyond else np.inf)
+
+
+def test_windowed_census_costs_equal_the_dense_volume():
+    rng = np.random.default_rng(2)
+    h, w, nd, min_disp = 9, 21, 11, -3
+    left = rng.integers(0, 2**34, (h, w)).astype(np.uint64)
+    right = rng.integers(0, 2**34, (h, w)).astype(np.uint64)
+    valid = rng.random((h, w)) > 0.2
+    lo, hi = _random_windows(rng, h, w, nd, 6)
+    runs = kw.window_runs(lo, hi, nd, 4)
+    got = kc.hamming_runs(left, right, min_disp, 34.0, runs[2], runs[3], runs[4], runs[5], valid)
+    dense = kc.hamming_volume(left, right, min_disp, nd, 34.0, np.uint8)
+    kc.mask_invalid_right(dense, valid, min_disp, np.float32(34.0))
+    np.testing.assert_array_equal(got, kw.gather_runs(dense, runs[2], runs[3], runs[4], runs[5]))
+
+
+def test_search_windows_cover_the_coarse_neighbourhood():
+    coarse = np.full((6, 8), np.inf, np.float32)
+    coarse[2, 3] = 5.0  # the only valid coarse pixel
+    coarse[2, 4] = 7.0
+    lo, hi = osgm.search_windows(coarse, (12, 15), min_disp=2, ndisp=30, margin=1, radius=1, max_window=0)
+    assert lo.shape == (12, 15)
+    # Full-res pixel (5, 7) has coarse parent (2, 3): neighbours hold 5 and 7 -> [10 - 1, 14 + 1] px.
+    assert (lo[5, 7], hi[5, 7]) == (10 - 1 - 2, 14 + 1 + 1 - 2)
+    # Far from any valid coarse pixel: the full range.
+    assert (lo[11, 0], hi[11, 0]) == (0, 30)
+    assert (hi > lo).all() and lo.min() >= 0 and hi.max() <= 30
+
+
+def test_half_resolution_is_the_2x2_mean():
+    rng = np.random.default_rng(1)
+    img = rng.random((7, 9, 3)).astype(np.float32)
+    half = osgm.half_resolution(img)
+    padded = np.pad(img, ((0, 1), (0, 1), (0, 0)), mode="edge")
+    ref = 0.25 * (padded[0::2, 0::2] + padded[1::2, 0::2] + padded[0::2, 1::2] + padded[1::2, 1::2])
+    np.testing.assert_allclose(half, ref, rtol=1e-6)
+
+
+@pytest.mark.parametrize("coarse", [True, False])
+def test_slanted_plane_both_searches(coarse):
+    gt = np.tile(np.linspace(4.0, 30.0, 120, dtype=np.float32), (64, 1))
+    left, right = warp_pair(gt, seed=7)
+    res = run(left, right, [f"optimizer.coarse={str(coarse).lower()}"], ndisp=40)
+    assert bad(res.disparity, gt, 32, 1.0) < 0.01
+    assert bad(res.disparity, gt, 32, 0.5) < 0.10
+
+
+def test_coarse_to_fine_skips_the_dense_cost_volume():
+    gt = np.full((40, 64), 6.0, np.float32)
+    left, right = warp_pair(gt)
+    fine = run(left, right, [], ndisp=16)
+    dense = run(left, right, ["optimizer.coarse=false"], ndisp=16)
+    assert "cost.census" not in fine.timings and "cost.census" in dense.timings
+    np.testing.assert_allclose(fine.disparity[6:-6, 20:-6], gt[6:-6, 20:-6], atol=0.25)
+
+
+def test_confidence_and_uniqueness_from_the_winner_equal_the_dense_volume():
+    # The windowed SGM keeps the second-best sum; the same stages on the expanded volume (a
+    # stage without an on_winner_costs variant forces it) give the same maps.
+    gt = np.tile(np.linspace(3.0, 12.0, 80, dtype=np.float32), (40, 1))
+    left, right = warp_pair(gt, seed=2)
+    refine = [{"name": "subpixel"}, {"name": "uniqueness", "ratio": 0.02}, {"name": "confidence"},
+              {"name": "lr_check"}]
+    from stereocli.config import validate
+
+    base = {"cost": {"name": "census", "window": [5, 7]}, "optimizer": {"name": "sgm", "paths": 4, "coarse": True},
+            "refinement": refine}
+    cfg = validate(base, "<test>")
+    winner = match_pair(left, right, cfg, ndisp=16, want_confidence=True)
+    from stereocli.match import refine as mr
+
+    saved = mr.uniqueness.on_winner_costs
+    try:
+        del mr.uniqueness.on_winner_costs  # now the pipeline asks the SGM for the dense sums
+        volume = match_pair(left, right, cfg, ndisp=16, want_confidence=True)
+    finally:
+        mr.uniqueness.on_winner_costs = saved
+    np.testing.assert_array_equal(winner.disparity, volume.disparity)
+    np.testing.assert_array_equal(winner.confidence, volume.confidence)
+
+
+def test_coarse_to_fine_is_deterministic_across_thread_counts():
+    gt = np.tile(np.linspace(2.0, 20.0, 96, dtype=np.float32), (50, 1))
+    left, right = warp_pair(gt, seed=4)
+    cfg1 = build_config([], ["runtime.threads=1"])
+    cfg2 = build_config([], ["runtime.threads=2"])
+    a = match_pair(left, right, cfg1, ndisp=32, want_right=True)
+    b = match_pair(left, right, cfg2, ndisp=32, want_right=True)
+    np.testing.assert_array_equal(a.disparity, b.disparity)
+    np.testing.assert_array_equal(a.disparity_right, b.disparity_right)
+
+
+def test_coarse_to_fine_with_aggregation_uses_the_dense_volume():
+    from stereocli.config import validate
+
+    gt = np.full((40, 64), 5.0, np.float32)
+    left, right = warp_pair(gt)
+    cfg = validate({"cost": {"name": "ad"}, "aggregation": [{"name": "box", "window": [5, 5]}],
+                    "optimizer": {"name": "sgm", "paths": 4, "coarse": True}, "refinement": [{"name": "subpixel"}]},
+                   "<test>")
+    res = match_pair(left, right, cfg, ndisp=16)
+    assert "cost.ad" in res.timings and "aggregation.box" in res.timings
+    assert bad(res.disparity, gt, 20) < 0.02
