@@ -85,6 +85,21 @@ def _windows_from_coarse(coarse: np.ndarray, h: int, w: int, min_disp: int, ndis
     contributes the min and max of the finite coarse disparities within ``radius``, doubled,
     ± ``margin``; the full range where none is finite. Clipped to [0, D) and never empty."""
     h2, w2 = coarse.shape
+    # Separable min / max over the (2r + 1)² square: along rows, then along columns
+    # (invalid coarse pixels are +inf for the min and −inf for the max).
+    rmin = np.empty((h2, w2), np.float32)
+    rmax = np.empty((h2, w2), np.float32)
+    for y in prange(h2):
+        for x in range(w2):
+            a = np.float32(np.inf)
+            b = np.float32(-np.inf)
+            for xx in range(max(0, x - radius), min(w2, x + radius + 1)):
+                v = coarse[y, xx]
+                if np.isfinite(v):
+                    a = min(a, v)
+                    b = max(b, v)
+            rmin[y, x] = a
+            rmax[y, x] = b
     clo = np.empty((h2, w2), np.int32)
     chi = np.empty((h2, w2), np.int32)
     for y in prange(h2):
@@ -92,11 +107,8 @@ def _windows_from_coarse(coarse: np.ndarray, h: int, w: int, min_disp: int, ndis
             a = np.float32(np.inf)
             b = np.float32(-np.inf)
             for yy in range(max(0, y - radius), min(h2, y + radius + 1)):
-                for xx in range(max(0, x - radius), min(w2, x + radius + 1)):
-                    v = coarse[yy, xx]
-                    if np.isfinite(v):
-                        a = min(a, v)
-                        b = max(b, v)
+                a = min(a, rmin[yy, x])
+                b = max(b, rmax[yy, x])
             if b >= a:
                 lo = int(2 * a) - margin - min_disp
                 hi = int(2 * b) + margin + 1 - min_disp
