@@ -14,15 +14,24 @@ def _penalty(i0: float, i1: float, p1: int, p2: int, gamma: float) -> int:
     return max(int(p2 * gamma / (gamma + abs(i0 - i1))), p1)
 
 
-def reference_sgm(cq: np.ndarray, guide: np.ndarray, paths: int, p1: int, p2: int, gamma: float) -> np.ndarray:
+def reference_sgm(cq: np.ndarray, guide: np.ndarray, paths: int, p1: int, p2: int, gamma: float,
+                  lo: np.ndarray | None = None, hi: np.ndarray | None = None) -> np.ndarray:
     """Sum over directions r of L_r(p, d) = C(p, d) + min(L_r(p−r, d), L_r(p−r, d±1) + P1,
-    min_k L_r(p−r, k) + P2) − min_k L_r(p−r, k); paths start where p − r leaves the image."""
+    min_k L_r(p−r, k) + P2) − min_k L_r(p−r, k); paths start where p − r leaves the image.
+
+    With per-pixel windows ``[lo, hi)`` (the coarse-to-fine search) L_r is +∞ outside a
+    pixel's window and the sums are 65535 there."""
     h, w, nd = cq.shape
+    big = 10**9
+    inwin = np.ones((h, w, nd), bool)
+    if lo is not None:
+        k = np.arange(nd)[None, None, :]
+        inwin = (k >= lo[..., None]) & (k < hi[..., None])
     down = [tuple(r) for r in ks.DOWN_DIRECTIONS[paths]]
     offsets = [(0, 1), (0, -1)] + down + [(-dy, -dx) for dy, dx in down]
     total = np.zeros((h, w, nd), np.int64)
     for ry, rx in offsets:
-        lr = np.zeros((h, w, nd), np.int64)
+        lr = np.full((h, w, nd), big, np.int64)
         ys = range(h) if ry >= 0 else range(h - 1, -1, -1)
         xs = list(range(w)) if rx >= 0 else list(range(w - 1, -1, -1))
         for y in ys:
@@ -30,16 +39,17 @@ def reference_sgm(cq: np.ndarray, guide: np.ndarray, paths: int, p1: int, p2: in
                 c = cq[y, x].astype(np.int64)
                 yp, xp = y - ry, x - rx
                 if not (0 <= yp < h and 0 <= xp < w):
-                    lr[y, x] = c
-                    continue
-                prev = lr[yp, xp]
-                m = prev.min()
-                pen2 = _penalty(float(guide[y, x]), float(guide[yp, xp]), p1, p2, gamma)
-                up = np.concatenate([prev[1:], [10**9]])
-                dn = np.concatenate([[10**9], prev[:-1]])
-                lr[y, x] = c + np.minimum.reduce([prev, up + p1, dn + p1, np.full(nd, m + pen2)]) - m
-        total += lr
-    return total
+                    val = c
+                else:
+                    prev = lr[yp, xp]
+                    m = prev.min()
+                    pen2 = _penalty(float(guide[y, x]), float(guide[yp, xp]), p1, p2, gamma)
+                    up = np.concatenate([prev[1:], [big]])
+                    dn = np.concatenate([[big], prev[:-1]])
+                    val = c + np.minimum.reduce([prev, up + p1, dn + p1, np.full(nd, m + pen2)]) - m
+                lr[y, x] = np.where(inwin[y, x], val, big)
+        total += np.where(inwin, lr, 0)
+    return np.where(inwin, total, 65535)
 
 
 @pytest.mark.parametrize("paths", [2, 4, 8, 16])

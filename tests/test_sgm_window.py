@@ -12,44 +12,8 @@ from stereocli.match.kernels import sgm as ks
 from stereocli.match.kernels import sgm_window as kw
 from stereocli.match.optimize import sgm as osgm
 from stereocli.match.pipeline import match_pair
-from test_kernels_sgm import _penalty
+from test_kernels_sgm import reference_sgm
 from test_sgm import bad, run, warp_pair
-
-BIG = 10**9
-
-
-def reference_window_sgm(cq, guide, paths, p1, p2, gamma, lo, hi):
-    """Σ_r L_r on each pixel's window [lo, hi) (Hirschmüller eq. 13 with L = +∞ outside a
-    window); S_MAX outside the windows."""
-    h, w, nd = cq.shape
-    down = [tuple(r) for r in ks.DOWN_DIRECTIONS[paths]]
-    offsets = [(0, 1), (0, -1)] + down + [(-dy, -dx) for dy, dx in down]
-    inwin = np.zeros((h, w, nd), bool)
-    for y in range(h):
-        for x in range(w):
-            inwin[y, x, lo[y, x]:hi[y, x]] = True
-    total = np.zeros((h, w, nd), np.int64)
-    for ry, rx in offsets:
-        lr = np.full((h, w, nd), BIG, np.int64)
-        ys = range(h) if ry >= 0 else range(h - 1, -1, -1)
-        xs = list(range(w)) if rx >= 0 else list(range(w - 1, -1, -1))
-        for y in ys:
-            for x in xs:
-                c = cq[y, x].astype(np.int64)
-                yp, xp = y - ry, x - rx
-                if not (0 <= yp < h and 0 <= xp < w):
-                    val = c
-                else:
-                    prev = lr[yp, xp]
-                    m = prev.min()
-                    pen2 = _penalty(float(guide[y, x]), float(guide[yp, xp]), p1, p2, gamma)
-                    up = np.concatenate([prev[1:], [BIG]])
-                    dn = np.concatenate([[BIG], prev[:-1]])
-                    val = c + np.minimum.reduce([prev, up + p1, dn + p1, np.full(nd, m + pen2)]) - m
-                lr[y, x] = np.where(inwin[y, x], val, BIG)
-        total += np.where(inwin, lr, 0)
-    return np.where(inwin, total, kw.S_MAX)
-
 
 def _windowed(cq, guide, paths, lo, hi, align, min_disp=0, want_second=True):
     runs = kw.window_runs(lo, hi, cq.shape[2], align)
@@ -74,7 +38,7 @@ def test_windowed_kernel_equals_reference(paths, align):
     guide = rng.integers(0, 255, (h, w)).astype(np.float32)
     lo, hi = _random_windows(rng, h, w, nd, 5)
     _, dense = _windowed(cq, guide, paths, lo, hi, align)
-    np.testing.assert_array_equal(dense.astype(np.int64), reference_window_sgm(cq, guide, paths, 3, 20, 4.0, lo, hi))
+    np.testing.assert_array_equal(dense.astype(np.int64), reference_sgm(cq, guide, paths, 3, 20, 4.0, lo, hi))
 
 
 @pytest.mark.parametrize("paths", [4, 8])

@@ -52,25 +52,6 @@ def _clear(out, olo: int, ohi: int, lo: int, hi: int, sentinel) -> None:
 
 
 @njit(cache=True, inline="always")
-def _start(c, mul, out, olo: int, ohi: int, total, base, rlo: int, rhi: int, lo: int, hi: int, sentinel, keep):
-    # First pixel of a path: L_r(p, d) = C(p, d) on the window [lo, hi), the sentinel on the
-    # rest of the run [rlo, rhi); adds L_r into the sums (``keep`` = 0: overwrites them, for
-    # the first path of a pixel).
-    mul16 = np.int16(mul)
-    ulo = np.uint64(lo)
-    uhi = np.uint64(hi)
-    m = np.int16(INT16_MAX)
-    for d in range(np.uint64(rlo), np.uint64(rhi)):
-        v = np.int16(np.int16(c[base + d]) * mul16)
-        v = v if ulo <= d < uhi else sentinel
-        out[d + U2] = v
-        total[base + d] = np.uint16((total[base + d] & keep) + np.uint16(v))
-        m = min(m, v)
-    _clear(out, olo, ohi, rlo, rhi, sentinel)
-    return m
-
-
-@njit(cache=True, inline="always")
 def _step(c, mul, prev, pmin, p1, p2, out, olo: int, ohi: int, total, base, rlo: int, rhi: int, lo: int, hi: int,
           sentinel, keep):
     # Eq. 13 on p's window [lo, hi). ``prev`` (the predecessor's path costs, indexed k + 2)
@@ -96,6 +77,14 @@ def _step(c, mul, prev, pmin, p1, p2, out, olo: int, ohi: int, total, base, rlo:
         m = min(m, v)
     _clear(out, olo, ohi, rlo, rhi, sentinel)
     return m
+
+
+@njit(cache=True, inline="always")
+def _start(c, mul, blank, p1, out, olo: int, ohi: int, total, base, rlo: int, rhi: int, lo: int, hi: int, sentinel,
+           keep):
+    # First pixel of a path, L_r(p, d) = C(p, d): a step from a predecessor that reaches
+    # nothing (``blank``: all sentinels) with P2 = 0 and min 0.
+    return _step(c, mul, blank, 0, p1, 0, out, olo, ohi, total, base, rlo, rhi, lo, hi, sentinel, keep)
 
 
 @njit(cache=True, inline="always")
@@ -141,6 +130,7 @@ def _pass_rows(cq, nd: int, mul, pens, total, offset, win_lo, win_hi, run_lo, ru
     s = 1 if forward else -1
     sentinel = np.int16(INT16_MAX - p1)  # sentinel + P1 still fits int16; never selected
     hbuf[:] = sentinel
+    blank = np.full(nd + 4, sentinel, np.int16)  # the "predecessor" of a path's first pixel
     # Windows the two horizontal buffers hold (locals: per-thread arrays written every pixel
     # would share cache lines between the threads).
     h_lo0 = h_hi0 = h_lo1 = h_hi1 = 0
@@ -173,7 +163,7 @@ def _pass_rows(cq, nd: int, mul, pens, total, offset, win_lo, win_hi, run_lo, ru
                 h_lo1, h_hi1 = rlo, rhi
                 cur, prev = hbuf[1], hbuf[0]
             if j == 0:
-                hmin = _start(cq, mul, cur, olo, ohi, total, base, rlo, rhi, lo, hi, sentinel, hkeep)
+                hmin = _start(cq, mul, blank, p1, cur, olo, ohi, total, base, rlo, rhi, lo, hi, sentinel, hkeep)
             else:
                 # P2 between x and its predecessor x − s, stored at the right one of the two.
                 pen = pens[0, y, x] if forward else pens[0, y, x + 1]
@@ -193,8 +183,8 @@ def _pass_rows(cq, nd: int, mul, pens, total, offset, win_lo, win_hi, run_lo, ru
                 olo = lslot[k, ring, x, 0]
                 ohi = lslot[k, ring, x, 1]
                 if ip < 0 or xp < 0 or xp >= w:
-                    mins[k, ring, x] = _start(cq, mul, lbuf[k, ring, x], olo, ohi, total, base, rlo, rhi, lo,
-                                              hi, sentinel, keep)
+                    mins[k, ring, x] = _start(cq, mul, blank, p1, lbuf[k, ring, x], olo, ohi, total, base, rlo,
+                                              rhi, lo, hi, sentinel, keep)
                 else:
                     pen = pens[k + 1, y, x] if forward else pens[k + 1, yp, xp]
                     mins[k, ring, x] = _step(cq, mul, lbuf[k, pr, xp], mins[k, pr, xp], p1, pen,

@@ -80,35 +80,34 @@ def half_resolution(image: np.ndarray) -> np.ndarray:
 
 
 @njit(cache=True, parallel=True)
-def _windows_from_coarse(coarse: np.ndarray, h: int, w: int, min_disp: int, ndisp: int, margin: int, radius: int):
-    """(H, W) int32 ``lo``/``hi`` volume indices: each pixel's coarse parent (y // 2, x // 2)
-    contributes the min and max of the finite coarse disparities within ``radius``, doubled,
-    ± ``margin``; the full range where none is finite. Clipped to [0, D) and never empty."""
-    h2, w2 = coarse.shape
-    # Separable min / max over the (2r + 1)² square: along rows, then along columns
-    # (invalid coarse pixels are +inf for the min and −inf for the max).
-    rmin = np.empty((h2, w2), np.float32)
-    rmax = np.empty((h2, w2), np.float32)
-    for y in prange(h2):
-        for x in range(w2):
+def _row_min_max(lo_in: np.ndarray, hi_in: np.ndarray, radius: int):
+    """Min of ``lo_in`` and max of ``hi_in`` over ±``radius`` along each row (2-D float32)."""
+    h, w = lo_in.shape
+    lo = np.empty((h, w), np.float32)
+    hi = np.empty((h, w), np.float32)
+    for y in prange(h):
+        for x in range(w):
             a = np.float32(np.inf)
             b = np.float32(-np.inf)
-            for xx in range(max(0, x - radius), min(w2, x + radius + 1)):
-                v = coarse[y, xx]
-                if np.isfinite(v):
-                    a = min(a, v)
-                    b = max(b, v)
-            rmin[y, x] = a
-            rmax[y, x] = b
-    clo = np.empty((h2, w2), np.int32)
-    chi = np.empty((h2, w2), np.int32)
-    for y in prange(h2):
-        for x in range(w2):
-            a = np.float32(np.inf)
-            b = np.float32(-np.inf)
-            for yy in range(max(0, y - radius), min(h2, y + radius + 1)):
-                a = min(a, rmin[yy, x])
-                b = max(b, rmax[yy, x])
+            for xx in range(max(0, x - radius), min(w, x + radius + 1)):
+                a = min(a, lo_in[y, xx])
+                b = max(b, hi_in[y, xx])
+            lo[y, x] = a
+            hi[y, x] = b
+    return lo, hi
+
+
+@njit(cache=True, parallel=True)
+def _upsample_windows(nmin, nmax, h: int, w: int, min_disp: int, ndisp: int, margin: int):
+    """(H, W) int32 ``lo``/``hi`` volume indices from the coarse range [nmin, nmax] of each
+    pixel's coarse parent (y // 2, x // 2): doubled, ± ``margin``; the full range where the
+    range is empty. Clipped to [0, D) and never empty."""
+    lo_map = np.empty((h, w), np.int32)
+    hi_map = np.empty((h, w), np.int32)
+    for y in prange(h):
+        for x in range(w):
+            a = nmin[y // 2, x // 2]
+            b = nmax[y // 2, x // 2]
             if b >= a:
                 lo = int(2 * a) - margin - min_disp
                 hi = int(2 * b) + margin + 1 - min_disp
@@ -116,14 +115,8 @@ def _windows_from_coarse(coarse: np.ndarray, h: int, w: int, min_disp: int, ndis
                 lo = 0
                 hi = ndisp
             lo = min(max(lo, 0), ndisp - 1)
-            clo[y, x] = lo
-            chi[y, x] = min(max(hi, lo + 1), ndisp)
-    lo_map = np.empty((h, w), np.int32)
-    hi_map = np.empty((h, w), np.int32)
-    for y in prange(h):
-        for x in range(w):
-            lo_map[y, x] = clo[y // 2, x // 2]
-            hi_map[y, x] = chi[y // 2, x // 2]
+            lo_map[y, x] = lo
+            hi_map[y, x] = min(max(hi, lo + 1), ndisp)
     return lo_map, hi_map
 
 
@@ -171,8 +164,12 @@ def search_windows(coarse: np.ndarray, shape: tuple[int, int], min_disp: int, nd
     disparities: the range of the valid coarse disparities within ``radius`` coarse pixels,
     doubled, plus ``margin`` px each side; the full range where none is valid."""
     h, w = shape
-    lo, hi = _windows_from_coarse(np.ascontiguousarray(coarse, dtype=np.float32), h, w, int(min_disp), int(ndisp),
-                                  int(margin), int(radius))
+    valid = np.isfinite(coarse)
+    # Separable min / max of the valid coarse disparities over the (2r + 1)² square.
+    rmin, rmax = _row_min_max(np.where(valid, coarse, np.inf).astype(np.float32),
+                              np.where(valid, coarse, -np.inf).astype(np.float32), int(radius))
+    cmin, cmax = _row_min_max(np.ascontiguousarray(rmin.T), np.ascontiguousarray(rmax.T), int(radius))
+    lo, hi = _upsample_windows(cmin.T, cmax.T, h, w, int(min_disp), int(ndisp), int(margin))
     if max_window > 0:
         wide = hi - lo > max_window
         own = np.repeat(np.repeat(coarse, 2, 0), 2, 1)[:h, :w]
