@@ -183,3 +183,27 @@ def test_coarse_to_fine_with_aggregation_uses_the_dense_volume():
     res = match_pair(left, right, cfg, ndisp=16)
     assert "cost.ad" in res.timings and "aggregation.box" in res.timings
     assert bad(res.disparity, gt, 20) < 0.02
+
+
+@pytest.mark.parametrize("coarse", ["true", "false"])
+def test_valid_masks_are_honoured_by_both_searches(coarse):
+    # The SGM's integer winners (no refinement): invalid left pixels stay +inf, and no winner
+    # points at a right pixel outside the right mask.
+    gt = np.full((40, 72), 6.0, np.float32)
+    left, right = warp_pair(gt, seed=9)
+    left_valid = np.ones(gt.shape, bool)
+    left_valid[:, -6:] = False
+    right_valid = np.ones(gt.shape, bool)
+    right_valid[:, 20:26] = False  # a band of the right image no left pixel may match
+    from stereocli.config import validate
+
+    cfg = validate({"cost": {"name": "census", "window": [5, 7]},
+                    "optimizer": {"name": "sgm", "paths": 4, "coarse": coarse == "true"}, "refinement": []}, "<test>")
+    d = match_pair(left, right, cfg, ndisp=16, left_valid=left_valid, right_valid=right_valid).disparity
+    assert np.isinf(d[:, -6:]).all()
+    ys, xs = np.nonzero(np.isfinite(d))
+    xr = np.rint(xs - d[ys, xs]).astype(int)
+    inside = (xr >= 0) & (xr < gt.shape[1])
+    assert right_valid[ys[inside], xr[inside]].all()
+    assert np.isfinite(d[:, 40:60]).mean() > 0.95  # away from the band the plane is found
+    np.testing.assert_allclose(d[:, 40:60][np.isfinite(d[:, 40:60])], 6.0, atol=0.5)
