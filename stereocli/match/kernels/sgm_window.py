@@ -7,18 +7,26 @@ the whole range: the windows come from a coarse disparity map
 tSGM ("SURE: photogrammetric surface reconstruction from imagery", 2012).
 
 * Path costs are defined on each pixel's window and are +∞ outside it. A step from the
-  predecessor ``q`` (window ``[plo, phi)``) to ``p`` therefore reads ``L(q, d − 1 .. d + 1)``
-  only where ``d ∈ [plo − 1, phi]``; further out only the jump term ``min_k L(q, k) + P2`` is
-  finite, so ``L(p, d) = C(p, d) + P2`` there.
-* Path-cost rows keep the layout of :mod:`.sgm` (one int16 buffer per pixel, indexed by the
-  volume index ``k + 2``), with two sentinels written on each side of a pixel's window after
-  its step, so the step's main loop has no branches.
-* The sums ``S`` are stored *ragged*: pixel (y, x) owns ``width = hi − lo`` uint16 entries at
+  predecessor ``q`` to ``p`` reads ``L(q, d − 1 .. d + 1)``; where ``q``'s window does not
+  reach, only the jump term ``min_k L(q, k) + P2`` is finite, so ``L(p, d) = C(p, d) + P2``.
+* Path-cost rows keep the layout of :mod:`.sgm` (one int16 buffer per pixel and direction,
+  indexed by the volume index ``k + 2``), and every buffer holds sentinels outside the window
+  it holds: after each step the part of the buffer's previous run that the new one does not
+  cover is reset (``_clear``). So the step is one branch-free loop, with no case analysis of
+  how the two windows overlap.
+* Each window is computed inside its *run* ``[run_lo, run_hi)``: the window's bounds rounded
+  out to a grid of ``align`` hypotheses, so the vector loops run whole (the kernel's time
+  depends more on odd loop tails than on widths). Lanes outside the window store the sentinel,
+  so the result is exactly that of the window.
+* Costs and sums are stored *ragged*: pixel (y, x) owns ``run_hi − run_lo`` entries at
   ``offset[y, x]`` of one flat array (row-major), so memory and time scale with the windows,
   not with H·W·D.
 * Inner loops index with unsigned integers (numba emits no negative-index wrap-around code
-  for them, so LLVM vectorises loops that start at a run-time window bound). The flat sum
-  index is ``(offset − lo) + k`` computed modulo 2⁶⁴, which is exact for every k ≥ lo.
+  for them, so LLVM vectorises loops that start at a run-time bound). The flat index is
+  ``(offset − run_lo) + k`` computed modulo 2⁶⁴, which is exact for every k ≥ run_lo.
+* In the first phase the horizontal path, the first to reach a pixel, overwrites the sums
+  (``keep`` mask 0) instead of adding: no separate zeroing pass. The adaptive P2 of every
+  pixel and direction is computed once (:func:`penalty_maps`) and shared by both passes.
 * Besides the integer winners the kernel returns, per pixel and view, the sums at the winner
   and its two neighbours (sub-pixel fitting without a volume) and, on request, the best sum
   more than one hypothesis from the winner (uniqueness and confidence).
@@ -33,7 +41,7 @@ from numba import njit, prange
 
 from .sgm import DOWN_DIRECTIONS, INF, INT16_MAX, _pack, _penalty2
 
-#: Sum value used where a hypothesis is outside a pixel's window.
+#: Sum value of a hypothesis outside a pixel's window in an expanded volume (:func:`expand_sums`).
 S_MAX = 65535
 
 U1 = np.uint64(1)
