@@ -31,6 +31,14 @@ from .kernels.fused_sad import sad_wta as fused_sad_wta
 from .state import MatchState, WinnerCosts
 
 
+def run_cost_stage(state: MatchState, call) -> None:
+    """Run a configured cost stage (a StageCall) on ``state`` and give every hypothesis whose
+    right pixel is outside ``state.right_valid`` the volume's maximum cost."""
+    call.stage.func(state, call.params)
+    if state.right_valid is not None:
+        kc.mask_invalid_right(state.cost, state.right_valid, state.min_disp, np.float32(state.cost_max))
+
+
 def _channels(image: np.ndarray) -> np.ndarray:
     """(H, W) or (H, W, C) -> (H, W, C) float32 C-contiguous."""
     image = image if image.ndim == 3 else image[..., None]

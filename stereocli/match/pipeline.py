@@ -40,9 +40,9 @@ from typing import Callable
 import numpy as np
 
 from ..config import PipelineConfig
-from .allocator import keep_freed_memory
 from ..errors import DataError, MemoryBudgetError
-from .kernels.cost import mask_invalid_right
+from .allocator import keep_freed_memory
+from .cost import run_cost_stage
 from .kernels.volume import wta_right
 from .refine import clear_invalid_left
 from .state import MatchState
@@ -413,9 +413,7 @@ def _run_volume_stages(sub: MatchState, config: PipelineConfig, volume_stages, t
     # stages need the whole volume, so with them the cost stage always runs here.
     runs_cost = getattr(config.optimizer.stage.func, "runs_cost", lambda params: False)(config.optimizer.params)
     if config.aggregation or not runs_cost:
-        _timed(timings, f"cost.{call.stage.name}", call.stage.func, sub, call.params)
-        if sub.right_valid is not None:
-            mask_invalid_right(sub.cost, sub.right_valid, sub.min_disp, np.float32(sub.cost_max))
+        _timed(timings, f"cost.{call.stage.name}", run_cost_stage, sub, call)
     for call in config.aggregation:
         _timed(timings, f"aggregation.{call.stage.name}", call.stage.func, sub, call.params)
     call = config.optimizer

@@ -43,18 +43,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from numba import njit, prange
 
-
-@njit(cache=True, parallel=True)
-def _luma(img: np.ndarray) -> np.ndarray:
-    """(H, W, 3) float32 RGB -> (H, W) float32 luma 0.299 R + 0.587 G + 0.114 B."""
-    h, w = img.shape[0], img.shape[1]
-    out = np.empty((h, w), np.float32)
-    for y in prange(h):
-        for x in range(w):
-            out[y, x] = np.float32(0.299 * img[y, x, 0] + 0.587 * img[y, x, 1] + 0.114 * img[y, x, 2])
-    return out
+from .kernels.cost import luma
 
 
 @dataclass
@@ -112,6 +102,6 @@ class MatchState:
         hit = cache.get(which)
         if hit is not None and hit[0] is img:
             return hit[1]
-        grey = _luma(np.ascontiguousarray(img, dtype=np.float32))
+        grey = luma(np.ascontiguousarray(img, dtype=np.float32))
         cache[which] = (img, grey)
         return grey

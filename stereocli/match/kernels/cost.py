@@ -30,6 +30,17 @@ def _census_rows(padded: np.ndarray, h: int, w: int, half_h: int, half_w: int) -
     return out
 
 
+@njit(cache=True, parallel=True)
+def luma(img: np.ndarray) -> np.ndarray:
+    """(H, W, 3) float32 RGB -> (H, W) float32 luma 0.299 R + 0.587 G + 0.114 B."""
+    h, w = img.shape[0], img.shape[1]
+    out = np.empty((h, w), np.float32)
+    for y in prange(h):
+        for x in range(w):
+            out[y, x] = np.float32(0.299 * img[y, x, 0] + 0.587 * img[y, x, 1] + 0.114 * img[y, x, 2])
+    return out
+
+
 def census_transform(image: np.ndarray, half_h: int, half_w: int) -> np.ndarray:
     """Census bit strings of a (H, W) float32 image, one uint64 per pixel.
 

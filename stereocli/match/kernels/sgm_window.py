@@ -117,8 +117,7 @@ def _put_costs(costs, y: int, x: int, c0, c1, c2) -> None:
 
 @njit(cache=True)
 def _pass_rows(cq, nd: int, mul, pens, total, offset, win_lo, win_hi, run_lo, run_hi, dirs, forward: bool, i0: int,
-               i1: int,
-               fresh: bool, p1: int, lbuf, lslot, mins, hbuf, disp, disp_r, costs, costs_r, second, rbest,
+               i1: int, fresh: bool, p1: int, lbuf, lslot, mins, hbuf, disp, disp_r, costs, costs_r, second, rbest,
                min_disp: int) -> None:
     """Rows ``i0 ≤ i < i1`` (in pass order) of one raster pass (:func:`.sgm._pass_rows`, windowed).
 
@@ -136,6 +135,8 @@ def _pass_rows(cq, nd: int, mul, pens, total, offset, win_lo, win_hi, run_lo, ru
     h, w = win_lo.shape
     nk = dirs.shape[0]
     s = 1 if forward else -1
+    want_right = disp_r.shape[0] > 0
+    want_second = second.shape[0] > 0
     sentinel = np.int16(INT16_MAX - p1)  # sentinel + P1 still fits int16; never selected
     hbuf[:] = sentinel
     blank = np.full(nd + 4, sentinel, np.int16)  # the "predecessor" of a path's first pixel
@@ -205,8 +206,6 @@ def _pass_rows(cq, nd: int, mul, pens, total, offset, win_lo, win_hi, run_lo, ru
         # The row's sums are complete: winners among hypotheses inside the window whose right
         # pixel x − d lies inside the image; (sum, k) packed in a uint32 so ties go to the
         # smaller k (as in .sgm). The right view scans the same sums along the diagonals.
-        want_right = disp_r.shape[0] > 0
-        want_second = second.shape[0] > 0
         if want_right:
             rbest[:] = 0xFFFFFFFF
         for x in range(w):
@@ -315,9 +314,9 @@ def sgm_window_two_pass(cq, nd: int, mul: int, pens, total, offset, win_lo, win_
             forward = t == 0
             first = split if forward else h - split
             i0, i1 = (0, first) if fresh else (first, h)
-            _pass_rows(cq, nd, mul, pens, total, offset, win_lo, win_hi, run_lo, run_hi, dirs, forward, i0, i1, fresh, p1,
-                       lbuf[t],
-                       lslot[t], mins[t], hbuf[t], disp, disp_r, costs, costs_r, second, rbest[t], min_disp)
+            _pass_rows(cq, nd, mul, pens, total, offset, win_lo, win_hi, run_lo, run_hi, dirs, forward, i0, i1,
+                       fresh, p1, lbuf[t], lslot[t], mins[t], hbuf[t], disp, disp_r, costs, costs_r, second,
+                       rbest[t], min_disp)
     return disp, disp_r, costs, costs_r, second
 
 

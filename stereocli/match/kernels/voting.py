@@ -72,12 +72,11 @@ def region_vote(disp: np.ndarray, arms: np.ndarray, min_disp: int, ndisp: int, m
                         total += 1
             if total < need:
                 continue
-            # First fullest bin: the maximum (a vectorised reduction), then its first index.
-            top = hist.max()
             best = 0
-            while hist[best] != top:
-                best += 1
-            if top >= min_share * total:
+            for k in range(1, ndisp):
+                if hist[k] > hist[best]:
+                    best = k
+            if hist[best] >= min_share * total:
                 out[y, x] = np.float32(sums[best] / hist[best])
     return out
 

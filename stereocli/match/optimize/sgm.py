@@ -29,8 +29,10 @@ from numba import njit, prange
 
 from ...errors import ConfigError
 from ...registry import param, register
+from ..cost import run_cost_stage
 from ..kernels import sgm as ks
 from ..kernels import sgm_window as kw
+from ..kernels.maps import lr_check
 from ..state import MatchState, WinnerCosts
 
 #: Largest value of the aggregated volume (``state.cost_max`` after SGM); sums stay below it.
@@ -154,19 +156,9 @@ def coarse_disparity(state: MatchState, p: SGMParams) -> np.ndarray:
     if deeper:  # this level is itself searched coarse-to-fine; it computes its own costs
         sub.volume_needed = False
     else:
-        call.stage.func(sub, call.params)
-        if sub.right_valid is not None:
-            from ..kernels.cost import mask_invalid_right
-
-            mask_invalid_right(sub.cost, sub.right_valid, sub.min_disp, np.float32(sub.cost_max))
+        run_cost_stage(sub, call)
     run_sgm(sub, replace(p, paths=p.coarse_paths or p.paths, coarse_levels=p.coarse_levels - 1), coarse=deeper)
-    dl, dr = sub.disparity, sub.disparity_right
-    w2 = dl.shape[1]
-    xs = np.arange(w2)[None, :] - np.where(np.isfinite(dl), dl, 0).astype(np.int64)
-    ok = np.isfinite(dl) & (xs >= 0)
-    back = np.take_along_axis(dr, np.clip(xs, 0, w2 - 1), axis=1)
-    ok &= np.abs(back - dl) <= 1.0
-    return np.where(ok, dl, np.float32(np.inf)).astype(np.float32)
+    return lr_check(sub.disparity, sub.disparity_right, 1.0)
 
 
 def search_windows(coarse: np.ndarray, shape: tuple[int, int], min_disp: int, ndisp: int, margin: int,
@@ -228,20 +220,15 @@ def _run_windowed(state: MatchState, p: SGMParams) -> None:
     runs = kw.window_runs(lo, hi, state.ndisp, p.align)
     call = state.cost_call
     windowed = getattr(call.stage.func, "windowed", None)
+    exact = None
     if windowed is not None and state.cost is None:
         costs, state.cost_max = windowed(state, call.params, runs)
         exact = _integer_costs(state.cost_max, costs.dtype, p)
-    else:
-        exact = None
     if exact is not None:
         mul, scale, _, p1, p2 = exact
     else:
         if state.cost is None:  # the pipeline left the cost to this stage
-            from ..kernels.cost import mask_invalid_right
-
-            call.stage.func(state, call.params)
-            if state.right_valid is not None:
-                mask_invalid_right(state.cost, state.right_valid, state.min_disp, np.float32(state.cost_max))
+            run_cost_stage(state, call)
         cq, mul, scale, p1, p2 = _quantized(state, p)
         costs = kw.gather_runs(cq, runs[2], runs[3], runs[4], runs[5])
         del cq
