@@ -109,6 +109,44 @@ def test_search_windows_cover_the_coarse_neighbourhood():
     assert (hi > lo).all() and lo.min() >= 0 and hi.max() <= 30
 
 
+def test_window_runs_on_the_grid_with_row_major_offsets():
+    rng = np.random.default_rng(4)
+    h, w, nd, align = 7, 13, 37, 8
+    lo, hi = _random_windows(rng, h, w, nd, 12)
+    got_lo, got_hi, run_lo, run_hi, offset, n = kw.window_runs(lo, hi, nd, align)
+    np.testing.assert_array_equal(got_lo, lo)
+    np.testing.assert_array_equal(run_lo, lo // align * align)
+    np.testing.assert_array_equal(run_hi, np.minimum(-(-hi // align) * align, nd))
+    width = (run_hi - run_lo).ravel().astype(np.int64)
+    np.testing.assert_array_equal(offset.ravel(), np.concatenate([[0], np.cumsum(width)[:-1]]))
+    assert n == width.sum()
+    with pytest.raises(ValueError, match="lo < hi"):
+        kw.window_runs(lo, lo, nd, align)  # empty windows
+    with pytest.raises(ValueError, match="lo < hi"):
+        kw.window_runs(lo, hi + nd, nd, align)  # beyond the range
+
+
+def test_search_windows_equal_a_brute_force_neighbourhood():
+    rng = np.random.default_rng(5)
+    ch, cw, r, margin, min_disp, nd = 9, 11, 2, 3, -4, 40
+    coarse = rng.integers(-2, 17, (ch, cw)).astype(np.float32)  # integer winners, as coarse_disparity gives
+    coarse[rng.random((ch, cw)) < 0.4] = np.inf
+    coarse[:, :5] = np.inf  # a band wider than the neighbourhood: full range there
+    h, w = 2 * ch - 1, 2 * cw
+    lo, hi = osgm.search_windows(coarse, (h, w), min_disp, nd, margin, r, max_window=0)
+    for y in range(h):
+        for x in range(w):
+            cy, cx = y // 2, x // 2
+            near = coarse[max(0, cy - r):cy + r + 1, max(0, cx - r):cx + r + 1]
+            near = near[np.isfinite(near)]
+            if near.size == 0:
+                want = (0, nd)
+            else:
+                a = int(np.clip(2 * near.min() - margin - min_disp, 0, nd - 1))
+                want = (a, int(np.clip(2 * near.max() + margin + 1 - min_disp, a + 1, nd)))
+            assert (lo[y, x], hi[y, x]) == want, (y, x)
+
+
 def test_half_resolution_is_the_2x2_mean():
     rng = np.random.default_rng(1)
     img = rng.random((7, 9, 3)).astype(np.float32)

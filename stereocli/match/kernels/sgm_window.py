@@ -334,14 +334,6 @@ def expand_sums(total, offset, run_lo, win_lo, win_hi, nd: int):
     return out
 
 
-def window_offsets(win_lo: np.ndarray, win_hi: np.ndarray) -> tuple[np.ndarray, int]:
-    """Row-major offsets (H, W) int64 of each pixel's sums in the flat array, and its length."""
-    width = (win_hi - win_lo).astype(np.int64).ravel()
-    offset = np.zeros(width.size, np.int64)
-    np.cumsum(width[:-1], out=offset[1:])
-    return offset.reshape(win_lo.shape), int(width.sum())
-
-
 @njit(cache=True, parallel=True)
 def gather_runs(cq, run_lo, run_hi, offset, n: int):
     """The entries of a dense (H, W, D) cost volume on each pixel's run, ragged (for costs
@@ -356,22 +348,55 @@ def gather_runs(cq, run_lo, run_hi, offset, n: int):
     return out
 
 
+@njit(cache=True, parallel=True)
+def _runs_and_offsets(lo, hi, nd: int, step: int):
+    # Runs on the grid of ``step`` around each window [lo, hi) and their row-major offsets in
+    # the flat arrays (window_offsets of the runs) in one compiled pass; returns ``(run_lo,
+    # run_hi, offset, n, bad)``, ``bad`` counting windows outside [0, nd) or empty.
+    h, w = lo.shape
+    run_lo = np.empty((h, w), np.int32)
+    run_hi = np.empty((h, w), np.int32)
+    offset = np.empty((h, w), np.int64)
+    row_start = np.zeros(h + 1, np.int64)
+    row_bad = np.zeros(h, np.int64)
+    for y in prange(h):
+        used = 0
+        bad = 0
+        for x in range(w):
+            a = lo[y, x]
+            b = hi[y, x]
+            bad += (a < 0) | (b > nd) | (b <= a)
+            ra = a // step * step
+            rb = min((b + step - 1) // step * step, nd)
+            run_lo[y, x] = ra
+            run_hi[y, x] = rb
+            offset[y, x] = used  # within the row until the row starts are known
+            used += rb - ra
+        row_start[y + 1] = used
+        row_bad[y] = bad
+    for y in range(h):  # prefix sum over the rows
+        row_start[y + 1] += row_start[y]
+    for y in prange(h):
+        for x in range(w):
+            offset[y, x] += row_start[y]
+    return run_lo, run_hi, offset, row_start[h], row_bad.sum()
+
+
 def window_runs(win_lo: np.ndarray, win_hi: np.ndarray, nd: int, align: int = 16):
     """Checked windows and the runs the kernel computes: ``(lo, hi, run_lo, run_hi, offset,
     n)``. Runs enclose the windows with bounds on a grid of ``align`` hypotheses (clipped to
     D), so vector loops run whole; ``offset`` (H, W) int64 and ``n`` place them in the flat
-    arrays of costs and sums."""
+    arrays of costs and sums (as :func:`window_offsets` would)."""
     lo = np.ascontiguousarray(win_lo, dtype=np.int32)
     hi = np.ascontiguousarray(win_hi, dtype=np.int32)
     if nd > 65535:
         raise ValueError("SGM supports at most 65535 disparities")
-    if lo.shape != hi.shape or lo.min() < 0 or hi.max() > nd or np.any(hi <= lo):
+    if lo.shape != hi.shape or lo.ndim != 2:
+        raise ValueError("SGM windows: lo and hi must be (H, W) arrays of one shape")
+    run_lo, run_hi, offset, n, bad = _runs_and_offsets(lo, hi, int(nd), max(1, int(align)))
+    if bad:
         raise ValueError("SGM windows must satisfy 0 <= lo < hi <= D for every pixel")
-    step = max(1, int(align))
-    run_lo = (lo // step * step).astype(np.int32)
-    run_hi = np.minimum(-(-hi // step) * step, nd).astype(np.int32)
-    offset, n = window_offsets(run_lo, run_hi)
-    return lo, hi, run_lo, run_hi, offset, n
+    return lo, hi, run_lo, run_hi, offset, int(n)
 
 
 def sgm_window(costs: np.ndarray, runs, nd: int, guide: np.ndarray, paths: int, p1: int, p2: int, gamma: float,

@@ -93,20 +93,32 @@ def half_resolution(image: np.ndarray) -> np.ndarray:
 
 
 @njit(cache=True, parallel=True)
-def _row_min_max(lo_in: np.ndarray, hi_in: np.ndarray, radius: int):
-    """Min of ``lo_in`` and max of ``hi_in`` over ±``radius`` along each row (2-D float32)."""
-    h, w = lo_in.shape
-    lo = np.empty((h, w), np.float32)
-    hi = np.empty((h, w), np.float32)
+def _square_min_max(coarse: np.ndarray, radius: int):
+    """Min and max of the finite values of ``coarse`` (2-D float32) over the (2r + 1)² square
+    around each pixel (separable: rows, then columns); +inf / −inf where none is finite."""
+    h, w = coarse.shape
+    rmin = np.empty((h, w), np.float32)
+    rmax = np.empty((h, w), np.float32)
     for y in prange(h):
         for x in range(w):
             a = np.float32(np.inf)
             b = np.float32(-np.inf)
             for xx in range(max(0, x - radius), min(w, x + radius + 1)):
-                a = min(a, lo_in[y, xx])
-                b = max(b, hi_in[y, xx])
-            lo[y, x] = a
-            hi[y, x] = b
+                v = coarse[y, xx]
+                if np.isfinite(v):
+                    a = min(a, v)
+                    b = max(b, v)
+            rmin[y, x] = a
+            rmax[y, x] = b
+    lo = np.empty((h, w), np.float32)
+    hi = np.empty((h, w), np.float32)
+    for y in prange(h):
+        lo[y] = rmin[max(0, y - radius)]
+        hi[y] = rmax[max(0, y - radius)]
+        for yy in range(max(0, y - radius) + 1, min(h, y + radius + 1)):
+            for x in range(w):
+                lo[y, x] = min(lo[y, x], rmin[yy, x])
+                hi[y, x] = max(hi[y, x], rmax[yy, x])
     return lo, hi
 
 
@@ -167,12 +179,8 @@ def search_windows(coarse: np.ndarray, shape: tuple[int, int], min_disp: int, nd
     disparities: the range of the valid coarse disparities within ``radius`` coarse pixels,
     doubled, plus ``margin`` px each side; the full range where none is valid."""
     h, w = shape
-    valid = np.isfinite(coarse)
-    # Separable min / max of the valid coarse disparities over the (2r + 1)² square.
-    rmin, rmax = _row_min_max(np.where(valid, coarse, np.inf).astype(np.float32),
-                              np.where(valid, coarse, -np.inf).astype(np.float32), int(radius))
-    cmin, cmax = _row_min_max(np.ascontiguousarray(rmin.T), np.ascontiguousarray(rmax.T), int(radius))
-    lo, hi = _upsample_windows(cmin.T, cmax.T, h, w, int(min_disp), int(ndisp), int(margin))
+    nmin, nmax = _square_min_max(np.ascontiguousarray(coarse, dtype=np.float32), int(radius))
+    lo, hi = _upsample_windows(nmin, nmax, h, w, int(min_disp), int(ndisp), int(margin))
     if max_window > 0:
         wide = hi - lo > max_window
         own = np.repeat(np.repeat(coarse, 2, 0), 2, 1)[:h, :w]
