@@ -82,6 +82,39 @@ def test_winner_costs_match_the_sums():
             assert r["second"][y, x] == (min(beyond) if beyond else np.inf)
 
 
+def test_right_costs_are_skipped_unless_wanted():
+    rng = np.random.default_rng(6)
+    h, w, nd = 9, 16, 10
+    cq = rng.integers(0, 40, (h, w, nd)).astype(np.uint8)
+    guide = rng.integers(0, 255, (h, w)).astype(np.float32)
+    lo, hi = _random_windows(rng, h, w, nd, 6)
+    runs = kw.window_runs(lo, hi, nd, 4)
+    costs = kw.gather_runs(cq, runs[2], runs[3], runs[4], runs[5])
+    both = kw.sgm_window(costs, runs, nd, guide, 4, 3, 20, 4.0, 0, True, False)
+    lean = kw.sgm_window(costs, runs, nd, guide, 4, 3, 20, 4.0, 0, True, False, want_right_costs=False)
+    assert both["costs_right"] is not None and lean["costs_right"] is None
+    np.testing.assert_array_equal(lean["disparity_right"], both["disparity_right"])
+    np.testing.assert_array_equal(lean["disparity"], both["disparity"])
+    found = np.isfinite(lean["disparity"])
+    np.testing.assert_array_equal(lean["costs"][found], both["costs"][found])
+
+
+@pytest.mark.parametrize("coarse", ["true", "false"])
+def test_subpixel_right_false_keeps_the_right_winners_integer(coarse):
+    gt = np.tile(np.linspace(4.0, 12.0, 96, dtype=np.float32), (48, 1))
+    left, right = warp_pair(gt, seed=3)
+    refine = ["refinement.subpixel.right=false", f"optimizer.coarse={coarse}"]
+    lean = run(left, right, refine, ndisp=16, want_right=True)
+    full = run(left, right, ["refinement.subpixel.right=true", f"optimizer.coarse={coarse}"], ndisp=16,
+               want_right=True)
+    finite = np.isfinite(lean.disparity_right)
+    assert finite.mean() > 0.8
+    np.testing.assert_array_equal(lean.disparity_right[finite], np.round(lean.disparity_right[finite]))
+    # With right: true the right view is sub-pixel on the slant; the left view is in both.
+    assert np.mean(full.disparity_right[finite] != np.round(full.disparity_right[finite])) > 0.5
+    assert bad(lean.disparity, gt, 20, 0.5) < 0.05
+
+
 def test_windowed_census_costs_equal_the_dense_volume():
     rng = np.random.default_rng(2)
     h, w, nd, min_disp = 9, 21, 11, -3

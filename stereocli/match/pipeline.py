@@ -421,6 +421,8 @@ def _run_volume_stages(sub: MatchState, config: PipelineConfig, volume_stages, t
     # ``winner`` instead when every volume refinement can work from it.
     sub.volume_needed = any(not hasattr(c.stage.func, "on_winner_costs") for c in volume_stages)
     sub.want_second = any(_needs_second_best(c, sub) for c in volume_stages)
+    sub.want_right_costs = sub.want_right and any(
+        getattr(c.stage.func, "needs_right_costs", lambda state, params: False)(sub, c.params) for c in volume_stages)
     _timed(timings, f"optimizer.{call.stage.name}", call.stage.func, sub, call.params)
     if sub.want_right and sub.disparity_right is None:
         t0 = time.perf_counter()

@@ -22,18 +22,24 @@ from .state import MatchState
 @dataclass(frozen=True)
 class SubpixelParams:
     method: str = param("parabola", "curve fitted through the costs at d-1, d, d+1", choices=("parabola", "equiangular"))
+    right: bool = param(True, "also refine the right-view disparity (the --right output and what lr_check then compares with); false keeps its integer winners")
 
 
 @register("refinement", "subpixel", SubpixelParams, needs_cost=True)
 def subpixel(state: MatchState, p: SubpixelParams) -> None:
-    """Sub-pixel disparity from the costs around the winner (left and, if present, right view).
+    """Sub-pixel disparity from the costs around the winner (left and, if present and
+    ``right``, right view).
 
     Parabola suits smooth (squared-like) costs such as SGM sums; equiangular (a symmetric V)
-    suits absolute-difference-like costs and has less bias towards integers on them.
+    suits absolute-difference-like costs and has less bias towards integers on them. With
+    ``right: false`` the right view keeps its integer winners: ``lr_check`` then compares the
+    sub-pixel left map with them, which on MiddEval3 and Middlebury 2001/2003 scores as well as
+    comparing two sub-pixel maps (README), and the windowed SGM skips keeping the right view's
+    neighbouring sums.
     """
     equi = p.method == "equiangular"
     state.disparity = subpixel_left(state.cost, state.disparity, state.min_disp, equi)
-    if state.disparity_right is not None:
+    if state.disparity_right is not None and p.right:
         state.disparity_right = subpixel_right(state.cost, state.disparity_right, state.min_disp, equi)
 
 
@@ -44,12 +50,15 @@ def _subpixel_on_winner_costs(state: MatchState, p: SubpixelParams) -> None:
 
     equi = p.method == "equiangular"
     state.disparity = subpixel_on_winner(state.winner, state.disparity, state.min_disp, state.ndisp, equi)
-    if state.disparity_right is not None and state.winner.costs_right is not None:
+    if p.right and state.disparity_right is not None and state.winner.costs_right is not None:
         state.disparity_right = subpixel_on_winner(state.winner, state.disparity_right, state.min_disp, state.ndisp,
                                                    equi, right=True)
 
 
 subpixel.on_winner_costs = _subpixel_on_winner_costs
+# Read by the pipeline: whether the optimizer should keep the right view's sums around its
+# winners (``WinnerCosts.costs_right``) for this stage.
+subpixel.needs_right_costs = lambda state, p: p.right
 
 
 @dataclass(frozen=True)

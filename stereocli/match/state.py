@@ -86,6 +86,7 @@ class MatchState:
     cost_call: object | None = None  # the configured cost StageCall (an optimizer may rerun it at a coarser scale)
     volume_needed: bool = True  # a later stage reads ``cost`` itself (else ``winner`` may stand in for it)
     want_second: bool = False  # a later stage reads ``winner.second`` (uniqueness, confidence)
+    want_right_costs: bool = False  # a later stage reads ``winner.costs_right`` (sub-pixel of the right view)
     gray_cache: dict = field(default_factory=dict, repr=False)  # which -> (image, its grey), see gray()
 
     @property

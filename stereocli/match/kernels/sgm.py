@@ -110,7 +110,7 @@ def _step(c, mul, prev, pmin, p1, p2, out, acc) -> int:
 def _pack(cost, k) -> np.uint32:
     # (cost, k) in one uint32 so a plain min — which vectorises — also breaks ties towards the
     # smaller index k (cost ≤ 65535, k < 65536).
-    return (np.uint32(cost) << np.uint32(16)) | np.uint32(k)
+    return np.uint32((np.uint32(cost) << np.uint32(16)) | np.uint32(k))
 
 
 @njit(cache=True, inline="always")

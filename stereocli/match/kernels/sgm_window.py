@@ -127,8 +127,8 @@ def _pass_rows(cq, nd: int, mul, pens, total, offset, win_lo, win_hi, run_lo, ru
     ``win_lo``/``win_hi`` (H, W) int32 its window and ``run_lo``/``run_hi`` the run of
     hypotheses computed around it (sums are stored for the run). In the second phase the row's winners are
     taken (left, and right if ``disp_r`` is not empty) with their neighbouring sums in
-    ``costs``/``costs_r`` (H, W, 3) float32 and, if ``second`` is not empty, the best sum more
-    than one hypothesis from the left winner. ``lslot`` (K, 3, W, 2) int32 holds the window
+    ``costs``/``costs_r`` (H, W, 3) float32 (``costs_r`` only if not empty) and, if ``second`` is
+    not empty, the best sum more than one hypothesis from the left winner. ``lslot`` (K, 3, W, 2) int32 holds the window
     each path-cost buffer of ``lbuf`` holds (its entries outside are sentinels); ``hbuf`` (2,
     D + 4) is reset to sentinels here.
     """
@@ -136,6 +136,7 @@ def _pass_rows(cq, nd: int, mul, pens, total, offset, win_lo, win_hi, run_lo, ru
     nk = dirs.shape[0]
     s = 1 if forward else -1
     want_right = disp_r.shape[0] > 0
+    want_right_costs = costs_r.shape[0] > 0
     want_second = second.shape[0] > 0
     sentinel = np.int16(INT16_MAX - p1)  # sentinel + P1 still fits int16; never selected
     hbuf[:] = sentinel
@@ -252,6 +253,8 @@ def _pass_rows(cq, nd: int, mul, pens, total, offset, win_lo, win_hi, run_lo, ru
                     continue
                 kb = int(v & np.uint32(0xFFFF))
                 disp_r[y, xr] = np.float32(min_disp + kb)
+                if not want_right_costs:
+                    continue
                 c1 = np.float32(v >> np.uint32(16))
                 # Right-view neighbours along the diagonal: S(x − 1, k − 1) and S(x + 1, k + 1).
                 x = xr + min_disp + kb
@@ -290,9 +293,9 @@ def penalty_maps(guide, dirs, p1: int, p2: int, gamma: float):
 
 @njit(cache=True, parallel=True)
 def sgm_window_two_pass(cq, nd: int, mul: int, pens, total, offset, win_lo, win_hi, run_lo, run_hi, dirs, p1: int,
-                        min_disp: int, want_right: bool, want_second: bool):
+                        min_disp: int, want_right: bool, want_second: bool, want_right_costs: bool):
     """Both passes in two phases over the windows; returns ``(disp, disp_r, costs, costs_r,
-    second)`` (the right-view arrays and ``second`` are empty when not wanted)."""
+    second)`` (the right-view arrays, ``costs_r`` and ``second`` are empty when not wanted)."""
     h, w = win_lo.shape
     nk = dirs.shape[0]
     split = h // 2
@@ -306,7 +309,7 @@ def sgm_window_two_pass(cq, nd: int, mul: int, pens, total, offset, win_lo, win_
     disp = np.empty((h, w), np.float32)
     disp_r = np.full((hr, wr), INF, np.float32)
     costs = np.empty((h, w, 3), np.float32)  # written wherever a winner is (only read there)
-    costs_r = np.empty((hr, wr, 3), np.float32)
+    costs_r = np.empty((hr if want_right_costs else 0, wr if want_right_costs else 0, 3), np.float32)
     second = np.zeros((h if want_second else 0, w if want_second else 0), np.float32)
     for phase in range(2):
         fresh = phase == 0
@@ -400,15 +403,17 @@ def window_runs(win_lo: np.ndarray, win_hi: np.ndarray, nd: int, align: int = 16
 
 
 def sgm_window(costs: np.ndarray, runs, nd: int, guide: np.ndarray, paths: int, p1: int, p2: int, gamma: float,
-               min_disp: int, want_right: bool = False, want_second: bool = False, cost_mul: int = 1):
+               min_disp: int, want_right: bool = False, want_second: bool = False, cost_mul: int = 1,
+               want_right_costs: bool = True):
     """Windowed SGM (module docstring) on integer costs stored ragged on the runs.
 
     ``runs``: :func:`window_runs` of the windows; ``costs``: uint8/uint16 flat array in that
     layout (e.g. :func:`gather_runs`, or a cost's own windowed kernel). Returns a dict with
     ``disparity`` and ``disparity_right`` (float32 integer winners, +inf where none; the right
     one None unless wanted), ``costs``/``costs_right`` ((H, W, 3) float32 sums at the winner − 1,
-    winner, winner + 1; an undefined neighbour equals the winner's sum), ``second`` ((H, W)
-    float32 or None) and the ragged sums ``total`` (for :func:`expand_sums`).
+    winner, winner + 1; an undefined neighbour equals the winner's sum; the right one None
+    unless ``want_right_costs``), ``second`` ((H, W) float32 or None) and the ragged sums
+    ``total`` (for :func:`expand_sums`).
     """
     lo, hi, run_lo, run_hi, offset, n = runs
     total = np.empty(n, np.uint16)
@@ -417,7 +422,7 @@ def sgm_window(costs: np.ndarray, runs, nd: int, guide: np.ndarray, paths: int, 
     pens = penalty_maps(guide, dirs, int(p1), int(p2), float(gamma))
     disp, disp_r, wcosts, wcosts_r, second = sgm_window_two_pass(
         costs, int(nd), int(cost_mul), pens, total, offset, lo, hi, run_lo, run_hi, dirs, int(p1), int(min_disp),
-        bool(want_right), bool(want_second))
+        bool(want_right), bool(want_second), bool(want_right and want_right_costs))
     return {"disparity": disp, "disparity_right": disp_r if want_right else None, "costs": wcosts,
-            "costs_right": wcosts_r if want_right else None, "second": second if want_second else None,
+            "costs_right": wcosts_r if want_right and want_right_costs else None, "second": second if want_second else None,
             "total": total}

@@ -242,7 +242,7 @@ def _run_windowed(state: MatchState, p: SGMParams) -> None:
         del cq
     guide = np.ascontiguousarray(state.gray("left"), dtype=np.float32)
     run = kw.sgm_window(costs, runs, state.ndisp, guide, p.paths, p1, p2, float(p.p2_gamma), state.min_disp,
-                        state.want_right, state.want_second, cost_mul=mul)
+                        state.want_right, state.want_second, cost_mul=mul, want_right_costs=state.want_right_costs)
     del costs
     state.extras["sgm_scale"] = scale
     state.cost_max = float(S_MAX)
