@@ -195,12 +195,17 @@ def _pass_rows(cq, mul, guide, total, dirs, forward: bool, i0: int, i1: int, fre
                     disp[y, x] = INF
                     continue
                 acc = total[y, x]
-                disp[y, x] = np.float32(min_disp + _winner(acc, k0, k1))
-                if want_right:
+                if want_right:  # both views in one pass
                     base = w - 1 - x + min_disp
                     dst = rbest[base + k0:base + k1 + 1]
+                    best = np.uint32(0xFFFFFFFF)
                     for k in range(k0, k1 + 1):
-                        dst[k - k0] = min(dst[k - k0], _pack(acc[k], k))
+                        pk = _pack(acc[k], k)
+                        best = min(best, pk)
+                        dst[k - k0] = min(dst[k - k0], pk)
+                    disp[y, x] = np.float32(min_disp + np.int64(best & np.uint32(0xFFFF)))
+                else:
+                    disp[y, x] = np.float32(min_disp + _winner(acc, k0, k1))
             if want_right:
                 for xr in range(w):
                     v = rbest[w - 1 - xr]

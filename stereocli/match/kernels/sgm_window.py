@@ -205,8 +205,7 @@ def _pass_rows(cq, nd: int, mul, pens, total, offset, win_lo, win_hi, run_lo, ru
         if fresh:
             continue
         # The row's sums are complete: winners among hypotheses inside the window whose right
-        # pixel x − d lies inside the image; (sum, k) packed in a uint32 so ties go to the
-        # smaller k (as in .sgm). The right view scans the same sums along the diagonals.
+        # pixel x − d lies inside the image, for both views in one pass over each window.
         if want_right:
             rbest[:] = 0xFFFFFFFF
         for x in range(w):
@@ -220,14 +219,22 @@ def _pass_rows(cq, nd: int, mul, pens, total, offset, win_lo, win_hi, run_lo, ru
                 continue
             uk0 = np.uint64(k0)
             uk1 = np.uint64(k1 + 1)
-            # Smallest sum (a vectorised reduction), then its first index: ties go to the
-            # smaller k (as in .sgm).
-            vmin = np.uint16(0xFFFF)
-            for k in range(uk0, uk1):
-                vmin = min(vmin, total[base + k])
-            kb = k0
-            while total[base + np.uint64(kb)] != vmin:
-                kb += 1
+            # Smallest (sum, k) packed in a uint32 (:func:`.sgm._pack`): one branch-free pass,
+            # ties to the smaller k. The right view takes the same values along the diagonals:
+            # right pixel xr = x − min_disp − k is slot W − 1 − xr = rb + k, which runs forward
+            # with k (rb may be negative; the unsigned sum wraps to the right slot).
+            lbest = np.uint32(0xFFFFFFFF)
+            if want_right:
+                rb = np.uint64(w - 1 - x + min_disp)
+                for k in range(uk0, uk1):
+                    pk = _pack(total[base + k], k)
+                    lbest = min(lbest, pk)
+                    rbest[rb + k] = min(rbest[rb + k], pk)
+            else:
+                for k in range(uk0, uk1):
+                    lbest = min(lbest, _pack(total[base + k], k))
+            kb = int(lbest & np.uint32(0xFFFF))
+            vmin = lbest >> np.uint32(16)
             disp[y, x] = np.float32(min_disp + kb)
             c1 = np.float32(vmin)
             c0 = _sum_at(total, base, k0, k1 + 1, kb - 1)
@@ -239,13 +246,6 @@ def _pass_rows(cq, nd: int, mul, pens, total, offset, win_lo, win_hi, run_lo, ru
                     if k < kb - 1 or k > kb + 1:
                         sec = min(sec, np.float32(total[base + np.uint64(k)]))
                 second[y, x] = sec
-            if want_right:
-                # Right pixel xr = x − min_disp − k is slot W − 1 − xr = rb + k, which runs
-                # forward with k (contiguous, vectorised); rb may be negative, the unsigned sum
-                # wraps to the right slot.
-                rb = np.uint64(w - 1 - x + min_disp)
-                for k in range(uk0, uk1):
-                    rbest[rb + k] = min(rbest[rb + k], _pack(total[base + k], k))
         if want_right:
             for xr in range(w):
                 v = rbest[w - 1 - xr]
