@@ -129,3 +129,22 @@ def test_holes_stay_holes_and_do_not_vote():
 def test_invalid_parameters_are_config_errors(bad):
     with pytest.raises(ConfigError):
         registry.get("refinement", "plane_smooth").make_params(bad)
+
+
+def test_color_false_weighs_by_the_grey_image():
+    # Two colours of equal luma: the colour distance (60) cuts the weight off beyond
+    # color_range, the grey distance (0) does not, so only the grey guide averages across.
+    h, w = 1, 12
+    image = np.zeros((h, w, 3), np.float32)
+    image[:, :6] = (100.0, 100.0, 100.0)
+    image[:, 6:] = (160.0, 100.0 - 60.0 * 0.299 / 0.587, 100.0)  # +60 red, green lowered to keep the luma
+    grey = np.ascontiguousarray(MatchState(image, image, 0, 64).gray("left"))
+    assert abs(grey[0, 0] - grey[0, 11]) < 0.5  # the two halves have (almost) the same luma
+    disp = np.where(np.arange(w) < 6, 5.0, 5.6).astype(np.float32)[None, :]
+    colour = run(disp, image, radius=3, color_range=20.0, gate=1.0)
+    by_grey = run(disp, image, radius=3, color_range=20.0, gate=1.0, color=False)
+    np.testing.assert_allclose(colour[0, :3], 5.0, atol=1e-6)  # no weight across the colour edge
+    assert by_grey[0, 5] > 5.05 and by_grey[0, 6] < 5.55  # the grey guide mixes the two sides
+    # On a grey image both settings are the same computation.
+    g = image[..., 0].copy()
+    np.testing.assert_array_equal(run(disp, g, radius=3), run(disp, g, radius=3, color=False))

@@ -245,6 +245,7 @@ class PlaneSmoothParams:
     sigma_space: float = param(10.0, "spatial Gaussian sigma along the segment", unit="px", low=0.1, high=100.0)
     color_range: float = param(20.0, "colour distance (Euclidean, over the channels) beyond which a neighbour gets no weight", unit="grey levels", low=0.1, high=500.0)
     gate: float = param(1.0, "neighbours whose disparity differs from the centre's by more than this are left out", unit="px", low=0.0, high=100.0)
+    color: bool = param(True, "colour distance on the colour image; false: on the grey image (about a third of the distance work, same scores on MiddEval3)")
 
 
 @register("refinement", "plane_smooth", PlaneSmoothParams)
@@ -259,8 +260,9 @@ def plane_smooth(state: MatchState, p: PlaneSmoothParams) -> None:
     depth edges (the gate) or colour edges (the colour weight). Needs no cost volume, so it can
     run last, on the dense map. Costs 2·(2·radius + 1) neighbour visits per pixel.
     """
-    state.disparity = kr.plane_smooth(state.disparity, _channels(state.left), int(p.radius),
-                                      float(p.sigma_space), float(p.color_range), float(p.gate))
+    guide = _channels(state.left) if p.color else _channels(state.gray("left"))
+    state.disparity = kr.plane_smooth(state.disparity, guide, int(p.radius), float(p.sigma_space),
+                                      float(p.color_range), float(p.gate))
 
 
 def clear_invalid_left(state: MatchState) -> None:
