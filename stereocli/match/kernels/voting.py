@@ -61,15 +61,22 @@ def region_vote(disp: np.ndarray, arms: np.ndarray, min_disp: int, ndisp: int, m
             hist[:] = 0
             sums[:] = 0.0
             total = 0
-            for yy in range(y - (arms[y, x, 2] // stride) * stride, y + arms[y, x, 3] + 1, stride):
+            # While loops: a range with a run-time step costs a division per loop.
+            yy = y - (arms[y, x, 2] // stride) * stride
+            y_end = y + arms[y, x, 3] + 1
+            while yy < y_end:
                 row_bins = bins[yy]
                 row_disp = disp[yy]
-                for xx in range(x - (arms[yy, x, 0] // stride) * stride, x + arms[yy, x, 1] + 1, stride):
+                xx = x - (arms[yy, x, 0] // stride) * stride
+                x_end = x + arms[yy, x, 1] + 1
+                while xx < x_end:
                     k = row_bins[xx]
                     if k >= 0:
                         hist[k] += 1
                         sums[k] += row_disp[xx]
                         total += 1
+                    xx += stride
+                yy += stride
             if total < need:
                 continue
             best = 0
