@@ -103,10 +103,9 @@ def test_right_costs_are_skipped_unless_wanted():
 def test_subpixel_right_false_keeps_the_right_winners_integer(coarse):
     gt = np.tile(np.linspace(4.0, 12.0, 96, dtype=np.float32), (48, 1))
     left, right = warp_pair(gt, seed=3)
-    refine = ["refinement.subpixel.right=false", f"optimizer.coarse={coarse}"]
-    lean = run(left, right, refine, ndisp=16, want_right=True)
-    full = run(left, right, ["refinement.subpixel.right=true", f"optimizer.coarse={coarse}"], ndisp=16,
-               want_right=True)
+    search = [f"optimizer.coarse={coarse}", "optimizer.coarse_min_ndisp=0"]
+    lean = run(left, right, ["refinement.subpixel.right=false", *search], ndisp=16, want_right=True)
+    full = run(left, right, ["refinement.subpixel.right=true", *search], ndisp=16, want_right=True)
     finite = np.isfinite(lean.disparity_right)
     assert finite.mean() > 0.8
     np.testing.assert_array_equal(lean.disparity_right[finite], np.round(lean.disparity_right[finite]))
@@ -198,10 +197,30 @@ def test_slanted_plane_both_searches(coarse):
     assert bad(res.disparity, gt, 32, 0.5) < 0.10
 
 
+@pytest.mark.parametrize("ndisp", [3, 4])
+def test_tiny_ranges_run_the_full_range_search(ndisp):
+    # Ranges of at most 4 disparities skip the coarse level; the optimizer then runs the cost
+    # stage the pipeline left to it (this raised "no cost volume" before).
+    gt = np.full((40, 64), 2.0, np.float32)
+    left, right = warp_pair(gt)
+    res = run(left, right, [], ndisp=ndisp)
+    assert bad(res.disparity, gt, 8, 0.25) == 0.0
+
+
+def test_coarse_min_ndisp_falls_back_to_the_full_range_search():
+    gt = np.tile(np.linspace(3.0, 14.0, 96, dtype=np.float32), (48, 1))
+    left, right = warp_pair(gt, seed=4)
+    dense = run(left, right, ["optimizer.coarse=false"], ndisp=24)
+    below = run(left, right, ["optimizer.coarse_min_ndisp=24"], ndisp=24)
+    above = run(left, right, ["optimizer.coarse_min_ndisp=23"], ndisp=24)
+    np.testing.assert_array_equal(below.disparity, dense.disparity)
+    assert not np.array_equal(above.disparity, dense.disparity)  # the windowed search ran
+
+
 def test_coarse_to_fine_skips_the_dense_cost_volume():
     gt = np.full((40, 64), 6.0, np.float32)
     left, right = warp_pair(gt)
-    fine = run(left, right, [], ndisp=16)
+    fine = run(left, right, ["optimizer.coarse_min_ndisp=0"], ndisp=16)
     dense = run(left, right, ["optimizer.coarse=false"], ndisp=16)
     assert "cost.census" not in fine.timings and "cost.census" in dense.timings
     np.testing.assert_allclose(fine.disparity[6:-6, 20:-6], gt[6:-6, 20:-6], atol=0.25)
