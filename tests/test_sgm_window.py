@@ -29,14 +29,18 @@ def _random_windows(rng, h, w, nd, widest):
     return lo, hi
 
 
+def _random_problem(seed, h, w, nd, widest):
+    """Random uint8 costs (H, W, D), a grey guide and windows of at most ``widest``."""
+    rng = np.random.default_rng(seed)
+    cq = rng.integers(0, 40, (h, w, nd)).astype(np.uint8)
+    guide = rng.integers(0, 255, (h, w)).astype(np.float32)
+    return (cq, guide, *_random_windows(rng, h, w, nd, widest))
+
+
 @pytest.mark.parametrize("paths", [2, 4, 8, 16])
 @pytest.mark.parametrize("align", [1, 4, 8])
 def test_windowed_kernel_equals_reference(paths, align):
-    rng = np.random.default_rng(paths * 10 + align)
-    h, w, nd = 11, 15, 9
-    cq = rng.integers(0, 40, (h, w, nd)).astype(np.uint8)
-    guide = rng.integers(0, 255, (h, w)).astype(np.float32)
-    lo, hi = _random_windows(rng, h, w, nd, 5)
+    cq, guide, lo, hi = _random_problem(paths * 10 + align, 11, 15, 9, 5)
     _, dense = _windowed(cq, guide, paths, lo, hi, align)
     np.testing.assert_array_equal(dense.astype(np.int64), reference_sgm(cq, guide, paths, 3, 20, 4.0, lo, hi))
 
@@ -57,11 +61,8 @@ def test_full_windows_equal_the_dense_kernel(paths):
 
 
 def test_winner_costs_match_the_sums():
-    rng = np.random.default_rng(5)
     h, w, nd = 10, 18, 12
-    cq = rng.integers(0, 40, (h, w, nd)).astype(np.uint8)
-    guide = rng.integers(0, 255, (h, w)).astype(np.float32)
-    lo, hi = _random_windows(rng, h, w, nd, 7)
+    cq, guide, lo, hi = _random_problem(5, h, w, nd, 7)
     r, dense = _windowed(cq, guide, 4, lo, hi, 4)
     for y in range(h):
         for x in range(w):
@@ -83,11 +84,8 @@ def test_winner_costs_match_the_sums():
 
 
 def test_right_costs_are_skipped_unless_wanted():
-    rng = np.random.default_rng(6)
-    h, w, nd = 9, 16, 10
-    cq = rng.integers(0, 40, (h, w, nd)).astype(np.uint8)
-    guide = rng.integers(0, 255, (h, w)).astype(np.float32)
-    lo, hi = _random_windows(rng, h, w, nd, 6)
+    nd = 10
+    cq, guide, lo, hi = _random_problem(6, 9, 16, nd, 6)
     runs = kw.window_runs(lo, hi, nd, 4)
     costs = kw.gather_runs(cq, runs[2], runs[3], runs[4], runs[5])
     both = kw.sgm_window(costs, runs, nd, guide, 4, 3, 20, 4.0, 0, True, False)
