@@ -58,9 +58,9 @@ def region_vote(disp: np.ndarray, arms: np.ndarray, min_disp: int, ndisp: int, m
         for x in range(w):
             if np.isfinite(disp[y, x]):
                 continue
-            hist[:] = 0
-            sums[:] = 0.0
             total = 0
+            kmin = ndisp
+            kmax = -1
             # While loops: a range with a run-time step costs a division per loop.
             yy = y - (arms[y, x, 2] // stride) * stride
             y_end = y + arms[y, x, 3] + 1
@@ -75,16 +75,22 @@ def region_vote(disp: np.ndarray, arms: np.ndarray, min_disp: int, ndisp: int, m
                         hist[k] += 1
                         sums[k] += row_disp[xx]
                         total += 1
+                        kmin = min(kmin, k)
+                        kmax = max(kmax, k)
                     xx += stride
                 yy += stride
-            if total < need:
+            if total == 0:
                 continue
-            best = 0
-            for k in range(1, ndisp):
+            # Only the bins in [kmin, kmax] were touched: scan them, then clear them again (the
+            # histograms stay all zero between outliers).
+            best = kmin
+            for k in range(kmin + 1, kmax + 1):
                 if hist[k] > hist[best]:
                     best = k
-            if hist[best] >= min_share * total:
+            if total >= need and hist[best] >= min_share * total:
                 out[y, x] = np.float32(sums[best] / hist[best])
+            hist[kmin:kmax + 1] = 0
+            sums[kmin:kmax + 1] = 0.0
     return out
 
 
