@@ -362,15 +362,25 @@ def _runs_and_offsets(lo, hi, nd: int, step: int):
     offset = np.empty((h, w), np.int64)
     row_start = np.zeros(h + 1, np.int64)
     row_bad = np.zeros(h, np.int64)
+    # Grid bounds of every value 0..nd, looked up per pixel (two divisions per pixel by a
+    # run-time step took most of this kernel's time).
+    down = np.empty(nd + 1, np.int32)
+    up = np.empty(nd + 1, np.int32)
+    for v in range(nd + 1):
+        down[v] = v // step * step
+        up[v] = min((v + step - 1) // step * step, nd)
     for y in prange(h):
         used = 0
         bad = 0
         for x in range(w):
             a = lo[y, x]
             b = hi[y, x]
-            bad += (a < 0) | (b > nd) | (b <= a)
-            ra = a // step * step
-            rb = min((b + step - 1) // step * step, nd)
+            if a < 0 or b > nd or b <= a:
+                bad += 1
+                a = 0
+                b = nd
+            ra = down[a]
+            rb = up[b]
             run_lo[y, x] = ra
             run_hi[y, x] = rb
             offset[y, x] = used  # within the row until the row starts are known

@@ -43,6 +43,10 @@ def region_vote(disp: np.ndarray, arms: np.ndarray, min_disp: int, ndisp: int, m
     need = max(1, (min_votes + stride * stride - 1) // (stride * stride))
     # Each pixel's vote, computed once (a pixel is in the regions of up to ~300 outliers): its
     # 1-px bin, or −1 for an outlier or a disparity outside the range.
+    # An arm of length a reaches a − a mod stride on the grid: looked up, not divided, per row.
+    snap = np.empty(max(h, w) + 1, np.int64)
+    for v in range(snap.shape[0]):
+        snap[v] = v // stride * stride
     bins = np.empty((h, w), np.int32)
     for y in prange(h):
         for x in range(w):
@@ -62,12 +66,12 @@ def region_vote(disp: np.ndarray, arms: np.ndarray, min_disp: int, ndisp: int, m
             kmin = ndisp
             kmax = -1
             # While loops: a range with a run-time step costs a division per loop.
-            yy = y - (arms[y, x, 2] // stride) * stride
+            yy = y - snap[arms[y, x, 2]]
             y_end = y + arms[y, x, 3] + 1
             while yy < y_end:
                 row_bins = bins[yy]
                 row_disp = disp[yy]
-                xx = x - (arms[yy, x, 0] // stride) * stride
+                xx = x - snap[arms[yy, x, 0]]
                 x_end = x + arms[yy, x, 1] + 1
                 while xx < x_end:
                     k = row_bins[xx]
