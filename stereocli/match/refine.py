@@ -27,8 +27,9 @@ class SubpixelParams:
 
 @register("refinement", "subpixel", SubpixelParams, needs_cost=True)
 def subpixel(state: MatchState, p: SubpixelParams) -> None:
-    """Sub-pixel disparity from the costs around the winner (left and, if present and
-    ``right``, right view).
+    """Sub-pixel disparity from the costs around the winner (left view; right view too if kept).
+
+    The right-view map, when there is one, is refined unless ``right`` is false.
 
     Parabola suits smooth (squared-like) costs such as SGM sums; equiangular (a symmetric V)
     suits absolute-difference-like costs and has less bias towards integers on them. With
