@@ -127,10 +127,10 @@ def _pass_rows(cq, nd: int, mul, pens, total, offset, win_lo, win_hi, run_lo, ru
     ``win_lo``/``win_hi`` (H, W) int32 its window and ``run_lo``/``run_hi`` the run of
     hypotheses computed around it (sums are stored for the run). In the second phase the row's winners are
     taken (left, and right if ``disp_r`` is not empty) with their neighbouring sums in
-    ``costs``/``costs_r`` (H, W, 3) float32 (``costs_r`` only if not empty) and, if ``second`` is
-    not empty, the best sum more than one hypothesis from the left winner. ``lslot`` (K, 3, W, 2) int32 holds the window
-    each path-cost buffer of ``lbuf`` holds (its entries outside are sentinels); ``hbuf`` (2,
-    D + 4) is reset to sentinels here.
+    ``costs``/``costs_r`` (H, W, 3) float32 (``costs_r`` only if not empty) and, if ``second``
+    is not empty, the best sum more than one hypothesis from the left winner. ``lslot`` (K, 3,
+    W, 2) int32 holds the window each path-cost buffer of ``lbuf`` holds (its entries outside
+    are sentinels); ``hbuf`` (2, D + 4) is reset to sentinels here.
     """
     h, w = win_lo.shape
     nk = dirs.shape[0]
@@ -354,8 +354,9 @@ def gather_runs(cq, run_lo, run_hi, offset, n: int):
 @njit(cache=True, parallel=True)
 def _runs_and_offsets(lo, hi, nd: int, step: int):
     # Runs on the grid of ``step`` around each window [lo, hi) and their row-major offsets in
-    # the flat arrays (window_offsets of the runs) in one compiled pass; returns ``(run_lo,
-    # run_hi, offset, n, bad)``, ``bad`` counting windows outside [0, nd) or empty.
+    # the flat arrays (each pixel's run follows the previous pixel's) in one compiled pass;
+    # returns ``(run_lo, run_hi, offset, n, bad)``, ``bad`` counting windows outside [0, nd)
+    # or empty.
     h, w = lo.shape
     run_lo = np.empty((h, w), np.int32)
     run_hi = np.empty((h, w), np.int32)
@@ -399,7 +400,7 @@ def window_runs(win_lo: np.ndarray, win_hi: np.ndarray, nd: int, align: int = 16
     """Checked windows and the runs the kernel computes: ``(lo, hi, run_lo, run_hi, offset,
     n)``. Runs enclose the windows with bounds on a grid of ``align`` hypotheses (clipped to
     D), so vector loops run whole; ``offset`` (H, W) int64 and ``n`` place them in the flat
-    arrays of costs and sums (as :func:`window_offsets` would)."""
+    arrays of costs and sums (row-major, each run right after the previous pixel's)."""
     lo = np.ascontiguousarray(win_lo, dtype=np.int32)
     hi = np.ascontiguousarray(win_hi, dtype=np.int32)
     if nd > 65535:
@@ -434,5 +435,5 @@ def sgm_window(costs: np.ndarray, runs, nd: int, guide: np.ndarray, paths: int, 
         costs, int(nd), int(cost_mul), pens, total, offset, lo, hi, run_lo, run_hi, dirs, int(p1), int(min_disp),
         bool(want_right), bool(want_second), bool(want_right and want_right_costs))
     return {"disparity": disp, "disparity_right": disp_r if want_right else None, "costs": wcosts,
-            "costs_right": wcosts_r if want_right and want_right_costs else None, "second": second if want_second else None,
-            "total": total}
+            "costs_right": wcosts_r if want_right and want_right_costs else None,
+            "second": second if want_second else None, "total": total}
