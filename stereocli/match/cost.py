@@ -45,6 +45,12 @@ def _channels(image: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(image, dtype=np.float32)
 
 
+def left_guide(state: MatchState, color: bool) -> np.ndarray:
+    """The left image as an (H, W, C) float32 guide: its channels, or (``color`` false) its
+    grey image as one channel (stages with a ``color`` option)."""
+    return _channels(state.left if color else state.gray("left"))
+
+
 def check_odd_window(where: str, window: tuple[int, int], max_pixels: int | None = None) -> None:
     """Raise :class:`ConfigError` naming ``where`` unless both sizes are odd (and small enough)."""
     if window[0] % 2 == 0 or window[1] % 2 == 0:

@@ -364,10 +364,12 @@ def _strip_state(state: MatchState, a: int, b: int) -> MatchState:
                       extras=dict(state.extras))
 
 
-def _needs_second_best(call, state: MatchState | None) -> bool:
-    # A volume stage reading ``winner.second`` (the best cost beyond ±1 of the winner), which
-    # only a windowed SGM keeps; without a state, any stage that may read it counts.
-    needs = getattr(call.stage.func, "needs_second_best", None)
+def _stage_reads(call, what: str, state: MatchState | None) -> bool:
+    # Whether a volume stage reads an optional part of ``winner`` that only a windowed SGM
+    # keeps: ``needs_second_best`` (``winner.second``, the best cost beyond ±1 of the winner)
+    # or ``needs_right_costs`` (``winner.costs_right``); without a state, any stage that may
+    # read it counts.
+    needs = getattr(call.stage.func, what, None)
     return needs is not None and (state is None or needs(state, call.params))
 
 
@@ -385,7 +387,7 @@ def fused_cost_wta(config: PipelineConfig, volume_stages: list, want_right: bool
     names = [c.stage.name for c in volume_stages]
     if (not FUSED or fused is None or config.aggregation or config.optimizer.stage.name != "wta"
             or want_right or len(set(names)) != len(names)
-            or any(not hasattr(c.stage.func, "on_winner_costs") or _needs_second_best(c, state)
+            or any(not hasattr(c.stage.func, "on_winner_costs") or _stage_reads(c, "needs_second_best", state)
                    for c in volume_stages)):
         return None
     return fused
@@ -420,9 +422,8 @@ def _run_volume_stages(sub: MatchState, config: PipelineConfig, volume_stages, t
     # An optimizer that never builds the whole volume (SGM's coarse-to-fine search) leaves
     # ``winner`` instead when every volume refinement can work from it.
     sub.volume_needed = any(not hasattr(c.stage.func, "on_winner_costs") for c in volume_stages)
-    sub.want_second = any(_needs_second_best(c, sub) for c in volume_stages)
-    sub.want_right_costs = sub.want_right and any(
-        getattr(c.stage.func, "needs_right_costs", lambda state, params: False)(sub, c.params) for c in volume_stages)
+    sub.want_second = any(_stage_reads(c, "needs_second_best", sub) for c in volume_stages)
+    sub.want_right_costs = sub.want_right and any(_stage_reads(c, "needs_right_costs", sub) for c in volume_stages)
     _timed(timings, f"optimizer.{call.stage.name}", call.stage.func, sub, call.params)
     if sub.want_right and sub.disparity_right is None:
         t0 = time.perf_counter()

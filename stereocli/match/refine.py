@@ -12,7 +12,7 @@ import numpy as np
 
 from ..errors import ConfigError
 from ..registry import param, register
-from .cost import _channels
+from .cost import left_guide
 from .kernels import maps as km
 from .kernels import refine as kr
 from .kernels.volume import subpixel_left, subpixel_right
@@ -28,8 +28,6 @@ class SubpixelParams:
 @register("refinement", "subpixel", SubpixelParams, needs_cost=True)
 def subpixel(state: MatchState, p: SubpixelParams) -> None:
     """Sub-pixel disparity from the costs around the winner (left view; right view too if kept).
-
-    The right-view map, when there is one, is refined unless ``right`` is false.
 
     Parabola suits smooth (squared-like) costs such as SGM sums; equiangular (a symmetric V)
     suits absolute-difference-like costs and has less bias towards integers on them. With
@@ -261,9 +259,8 @@ def plane_smooth(state: MatchState, p: PlaneSmoothParams) -> None:
     depth edges (the gate) or colour edges (the colour weight). Needs no cost volume, so it can
     run last, on the dense map. Costs 2·(2·radius + 1) neighbour visits per pixel.
     """
-    guide = _channels(state.left) if p.color else _channels(state.gray("left"))
-    state.disparity = kr.plane_smooth(state.disparity, guide, int(p.radius), float(p.sigma_space),
-                                      float(p.color_range), float(p.gate))
+    state.disparity = kr.plane_smooth(state.disparity, left_guide(state, p.color), int(p.radius),
+                                      float(p.sigma_space), float(p.color_range), float(p.gate))
 
 
 def clear_invalid_left(state: MatchState) -> None:

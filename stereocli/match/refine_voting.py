@@ -18,7 +18,7 @@ import numpy as np
 
 from ..errors import ConfigError
 from ..registry import param, register
-from .cost import _channels
+from .cost import _channels, left_guide
 from .kernels import aggregation as ka
 from .kernels import voting as kv
 from .refine import InterpolateParams, hole_labels
@@ -56,8 +56,7 @@ def region_voting(state: MatchState, p: RegionVotingParams) -> None:
     for ``proper_interpolation``/``fill``. Assumes a colour region is one fronto-parallel-ish
     surface (1-px bins): slanted surfaces spanning many bins vote less decisively.
     """
-    guide = _channels(state.left) if p.color else _channels(state.gray("left"))
-    arms = ka.cross_arms_two_threshold(guide, float(p.tau1), float(p.tau2), int(p.max_arm),
+    arms = ka.cross_arms_two_threshold(left_guide(state, p.color), float(p.tau1), float(p.tau2), int(p.max_arm),
                                        int(p.max_arm2))
     disp = np.ascontiguousarray(state.disparity, dtype=np.float32)
     for _ in range(p.iterations):

@@ -41,12 +41,12 @@ def region_vote(disp: np.ndarray, arms: np.ndarray, min_disp: int, ndisp: int, m
     out = disp.copy()
     half = (h + 1) // 2
     need = max(1, (min_votes + stride * stride - 1) // (stride * stride))
-    # Each pixel's vote, computed once (a pixel is in the regions of up to ~300 outliers): its
-    # 1-px bin, or −1 for an outlier or a disparity outside the range.
     # An arm of length a reaches a − a mod stride on the grid: looked up, not divided, per row.
     snap = np.empty(max(h, w) + 1, np.int64)
     for v in range(snap.shape[0]):
         snap[v] = v // stride * stride
+    # Each pixel's vote, computed once (a pixel is in the regions of up to ~300 outliers): its
+    # 1-px bin, or −1 for an outlier or a disparity outside the range.
     bins = np.empty((h, w), np.int32)
     for y in prange(h):
         for x in range(w):

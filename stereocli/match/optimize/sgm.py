@@ -163,14 +163,12 @@ def coarse_disparity(state: MatchState, p: SGMParams) -> np.ndarray:
     sub = MatchState(half(state.left), half(state.right), lo_d, hi_d - lo_d + 1, half_mask(state.left_valid),
                      half_mask(state.right_valid), want_right=True, integer_cost_ok=state.integer_cost_ok,
                      threads=state.threads)
-    call = state.cost_call
-    sub.cost_call = call
-    deeper = p.coarse_levels > 1 and sub.ndisp > 4
-    if deeper:  # this level is itself searched coarse-to-fine; it computes its own costs
-        sub.volume_needed = False
-    else:
-        run_cost_stage(sub, call)
-    run_sgm(sub, replace(p, paths=p.coarse_paths or p.paths, coarse_levels=p.coarse_levels - 1), coarse=deeper)
+    # run_sgm computes this level's costs itself (windowed if it searches coarse to fine again,
+    # else the full range) and only its winners are read here.
+    sub.cost_call = state.cost_call
+    sub.volume_needed = False
+    run_sgm(sub, replace(p, paths=p.coarse_paths or p.paths, coarse_levels=p.coarse_levels - 1),
+            coarse=p.coarse_levels > 1)
     return lr_check(sub.disparity, sub.disparity_right, 1.0)
 
 
@@ -265,7 +263,7 @@ def run_sgm(state: MatchState, p: SGMParams, coarse: bool | None = None) -> None
             and state.ndisp > max(4, p.coarse_min_ndisp)):
         _run_windowed(state, p)
         return
-    if state.cost is None and state.cost_call is not None:  # left to this stage (runs_cost), range too narrow
+    if state.cost is None and state.cost_call is not None:  # left to this stage (runs_cost, coarse level)
         run_cost_stage(state, state.cost_call)
     if state.cost is None:
         raise ConfigError("optimizer.sgm: no cost volume (the cost stage did not run)")
