@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Where a preset's time goes: per-stage wall time on MiddEval3 trainingQ pairs, against OpenCV
+"""Where a preset's time goes: per-stage wall time on MiddEval3 trainingQ (or v2) pairs, against OpenCV
 SGBM 3WAY on the same pair in the same process.
 
 Each preset runs once to warm up (numba caches, allocations), then ``--repeat`` times with the
@@ -60,7 +60,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", type=Path, default=DEFAULT_DATA, help="../shared/data folder")
     ap.add_argument("--presets", default="default", help="stereocli presets or YAML files, comma-separated")
-    ap.add_argument("--scenes", default="Adirondack,Teddy,Vintage", help="MiddEval3 trainingQ scenes")
+    ap.add_argument("--datasets", default="mb2014", help="mb2014 and/or v2 (Middlebury 2001/2003)")
+    ap.add_argument("--scenes", default="Adirondack,Teddy,Vintage", help="scene names (MiddEval3 trainingQ or v2)")
     ap.add_argument("--threads", type=int, default=2, help="threads for OpenCV and numba")
     ap.add_argument("--repeat", type=int, default=7, help="timed runs per preset (best kept per stage)")
     args = ap.parse_args(argv)
@@ -74,7 +75,7 @@ def main(argv=None) -> int:
     numba.set_num_threads(args.threads)
     presets = [p for p in args.presets.split(",") if p]
     configs = {p: build_config([p], []) for p in presets}
-    scenes = load_scenes(args.data, ["mb2014"], set(filter(None, args.scenes.split(","))))
+    scenes = load_scenes(args.data, args.datasets.split(","), set(filter(None, args.scenes.split(","))))
     print(f"{args.threads} threads, best of {args.repeat} per stage; ms per pair\n")
     for scene in scenes:
         best = best_stage_times(scene, configs, args.repeat)

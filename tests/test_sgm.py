@@ -47,9 +47,9 @@ def run(left, right, sets, min_disp=0, ndisp=16, **kw):
 def test_fronto_parallel_plane_each_path_count(paths, coarse):
     gt = np.full((48, 80), 5.0, np.float32)
     left, right = warp_pair(gt)
-    # coarse_min_ndisp=0: the default preset searches ranges of 16 at full range.
-    res = run(left, right, [f"optimizer.paths={paths}", f"optimizer.coarse={coarse}", "optimizer.coarse_min_ndisp=0"],
-              ndisp=16)
+    # The default preset searches ranges of 16 and small volumes at full range: both limits off.
+    res = run(left, right, [f"optimizer.paths={paths}", f"optimizer.coarse={coarse}", "optimizer.coarse_min_ndisp=0",
+                            "optimizer.coarse_min_volume=0"], ndisp=16)
     assert bad(res.disparity, gt, 16) < 0.01
     assert res.disparity.dtype == np.float32 and np.all(np.isfinite(res.disparity))
 

@@ -15,6 +15,10 @@ from stereocli.match.pipeline import match_pair
 from test_kernels_sgm import reference_sgm
 from test_sgm import bad, run, warp_pair
 
+# The default preset searches narrow ranges and small volumes (every test image here) at full
+# range; these overrides make it search coarse to fine.
+WINDOWED = ["optimizer.coarse_min_ndisp=0", "optimizer.coarse_min_volume=0"]
+
 def _windowed(cq, guide, paths, lo, hi, align, min_disp=0, want_second=True):
     runs = kw.window_runs(lo, hi, cq.shape[2], align)
     costs = kw.gather_runs(cq, runs[2], runs[3], runs[4], runs[5])
@@ -101,7 +105,7 @@ def test_right_costs_are_skipped_unless_wanted():
 def test_subpixel_right_false_keeps_the_right_winners_integer(coarse):
     gt = np.tile(np.linspace(4.0, 12.0, 96, dtype=np.float32), (48, 1))
     left, right = warp_pair(gt, seed=3)
-    search = [f"optimizer.coarse={coarse}", "optimizer.coarse_min_ndisp=0"]
+    search = [f"optimizer.coarse={coarse}", *WINDOWED]
     lean = run(left, right, ["refinement.subpixel.right=false", *search], ndisp=16, want_right=True)
     full = run(left, right, ["refinement.subpixel.right=true", *search], ndisp=16, want_right=True)
     finite = np.isfinite(lean.disparity_right)
@@ -190,7 +194,7 @@ def test_half_resolution_is_the_2x2_mean():
 def test_slanted_plane_both_searches(coarse):
     gt = np.tile(np.linspace(4.0, 30.0, 120, dtype=np.float32), (64, 1))
     left, right = warp_pair(gt, seed=7)
-    res = run(left, right, [f"optimizer.coarse={str(coarse).lower()}"], ndisp=40)
+    res = run(left, right, [f"optimizer.coarse={str(coarse).lower()}", *WINDOWED], ndisp=40)
     assert bad(res.disparity, gt, 32, 1.0) < 0.01
     assert bad(res.disparity, gt, 32, 0.5) < 0.10
 
@@ -209,16 +213,28 @@ def test_coarse_min_ndisp_falls_back_to_the_full_range_search():
     gt = np.tile(np.linspace(3.0, 14.0, 96, dtype=np.float32), (48, 1))
     left, right = warp_pair(gt, seed=4)
     dense = run(left, right, ["optimizer.coarse=false"], ndisp=24)
-    below = run(left, right, ["optimizer.coarse_min_ndisp=24"], ndisp=24)
-    above = run(left, right, ["optimizer.coarse_min_ndisp=23"], ndisp=24)
+    below = run(left, right, ["optimizer.coarse_min_ndisp=24", "optimizer.coarse_min_volume=0"], ndisp=24)
+    above = run(left, right, ["optimizer.coarse_min_ndisp=23", "optimizer.coarse_min_volume=0"], ndisp=24)
     np.testing.assert_array_equal(below.disparity, dense.disparity)
     assert not np.array_equal(above.disparity, dense.disparity)  # the windowed search ran
+
+
+def test_coarse_min_volume_falls_back_to_the_full_range_search():
+    # 48 x 96 x 24 = 110592 cells: searched at full range up to a limit of 0.110592 M cells.
+    gt = np.tile(np.linspace(3.0, 14.0, 96, dtype=np.float32), (48, 1))
+    left, right = warp_pair(gt, seed=4)
+    dense = run(left, right, ["optimizer.coarse=false"], ndisp=24)
+    at = run(left, right, ["optimizer.coarse_min_ndisp=0", "optimizer.coarse_min_volume=0.110592"], ndisp=24)
+    below = run(left, right, ["optimizer.coarse_min_ndisp=0", "optimizer.coarse_min_volume=0.1105"], ndisp=24)
+    np.testing.assert_array_equal(at.disparity, dense.disparity)
+    assert not np.array_equal(below.disparity, dense.disparity)  # the windowed search ran
+    assert bad(below.disparity, gt, 20, 1.0) < 0.01
 
 
 def test_coarse_to_fine_skips_the_dense_cost_volume():
     gt = np.full((40, 64), 6.0, np.float32)
     left, right = warp_pair(gt)
-    fine = run(left, right, ["optimizer.coarse_min_ndisp=0"], ndisp=16)
+    fine = run(left, right, WINDOWED, ndisp=16)
     dense = run(left, right, ["optimizer.coarse=false"], ndisp=16)
     assert "cost.census" not in fine.timings and "cost.census" in dense.timings
     np.testing.assert_allclose(fine.disparity[6:-6, 20:-6], gt[6:-6, 20:-6], atol=0.25)
@@ -252,8 +268,8 @@ def test_confidence_and_uniqueness_from_the_winner_equal_the_dense_volume():
 def test_coarse_to_fine_is_deterministic_across_thread_counts():
     gt = np.tile(np.linspace(2.0, 20.0, 96, dtype=np.float32), (50, 1))
     left, right = warp_pair(gt, seed=4)
-    cfg1 = build_config([], ["runtime.threads=1"])
-    cfg2 = build_config([], ["runtime.threads=2"])
+    cfg1 = build_config([], ["runtime.threads=1", *WINDOWED])
+    cfg2 = build_config([], ["runtime.threads=2", *WINDOWED])
     a = match_pair(left, right, cfg1, ndisp=32, want_right=True)
     b = match_pair(left, right, cfg2, ndisp=32, want_right=True)
     np.testing.assert_array_equal(a.disparity, b.disparity)

@@ -202,21 +202,29 @@ def _arms_rows(planes: np.ndarray, tau1: float, tau_step: float, tau2: float, ma
                     for i in range(n):
                         ln[i] += g[i]
                     continue
+                py = qy - dy  # the arm pixel before q
+                centre = planes[0, y, x0:x1]
+                here = planes[0, qy, x0 + step * dx:x1 + step * dx]
+                before = planes[0, py, x0 + (step - 1) * dx:x1 + (step - 1) * dx]
                 dp = to_p[x0:x1]
                 dq = to_prev[x0:x1]
-                dp[:] = 0.0
-                dq[:] = 0.0
-                py = qy - dy  # the arm pixel before q
-                for c in range(nc):
-                    centre = planes[c, y, x0:x1]
-                    here = planes[c, qy, x0 + step * dx:x1 + step * dx]
-                    before = planes[c, py, x0 + (step - 1) * dx:x1 + (step - 1) * dx]
-                    for i in range(n):
-                        dp[i] = max(dp[i], abs(here[i] - centre[i]))
-                        dq[i] = max(dq[i], abs(here[i] - before[i]))
+                if nc > 1:  # colour: the largest channel difference, channel by channel
+                    dp[:] = 0.0
+                    dq[:] = 0.0
+                    for c in range(nc):
+                        centre_c = planes[c, y, x0:x1]
+                        here_c = planes[c, qy, x0 + step * dx:x1 + step * dx]
+                        before_c = planes[c, py, x0 + (step - 1) * dx:x1 + (step - 1) * dx]
+                        for i in range(n):
+                            dp[i] = max(dp[i], abs(here_c[i] - centre_c[i]))
+                            dq[i] = max(dq[i], abs(here_c[i] - before_c[i]))
                 alive = 0
                 for i in range(n):
-                    ok = g[i] and dp[i] < t1 and dq[i] < ts and (step <= max_len2 or dp[i] < t2)
+                    # Grey images take the differences here (one pass over the row per step:
+                    # about twice as fast as going through the buffers).
+                    dpi = abs(here[i] - centre[i]) if nc == 1 else dp[i]
+                    dqi = abs(here[i] - before[i]) if nc == 1 else dq[i]
+                    ok = g[i] and dpi < t1 and dqi < ts and (step <= max_len2 or dpi < t2)
                     g[i] = ok
                     ln[i] += ok
                     alive += ok

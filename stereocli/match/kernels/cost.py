@@ -79,16 +79,16 @@ def _hamming_rows(census_left, census_right, min_disp: int, cost_max: float, out
             # Hypotheses k0..k1 have their right pixel x − min_disp − k inside the image.
             k0 = max(0, x - min_disp - (w - 1))
             k1 = min(nd - 1, x - min_disp)
-            for k in range(0, min(k0, nd)):
-                o[k] = top
-            for k in range(max(k1 + 1, 0), nd):
-                o[k] = top
-            if k1 >= k0:
-                base = w - 1 - x + min_disp
-                src = reversed_right[base + k0:base + k1 + 1]
-                dst = o[k0:k1 + 1]
-                for k in range(src.shape[0]):
-                    dst[k] = _popcount64(cl ^ src[k])
+            base = w - 1 - x + min_disp
+            if k0 == 0 and k1 == nd - 1:
+                # Every hypothesis inside (most pixels): one loop over the whole range. (Loops
+                # over sub-slices with run-time bounds ran 2-5x slower.)
+                src = reversed_right[base:base + nd]
+                for k in range(nd):
+                    o[k] = _popcount64(cl ^ src[k])
+            else:
+                for k in range(nd):
+                    o[k] = _popcount64(cl ^ reversed_right[base + k]) if k0 <= k <= k1 else top
 
 
 @njit(cache=True, parallel=True)
@@ -108,22 +108,23 @@ def hamming_runs(census_left, census_right, min_disp: int, cost_max: float, run_
             cl = census_left[y, x]
             a = run_lo[y, x]
             b = run_hi[y, x]
-            o = offset[y, x] - a
+            run = out[offset[y, x]:offset[y, x] + (b - a)]
+            # Hypotheses k0..k1 of the run have their right pixel inside the image.
             k0 = max(a, x - min_disp - (w - 1))
             k1 = min(b - 1, x - min_disp)
-            for k in range(a, min(k0, b)):
-                out[o + k] = top
-            for k in range(max(k1 + 1, a), b):
-                out[o + k] = top
-            if k1 >= k0:
-                src = reversed_right[w - 1 - x + min_disp + k0:w - 1 - x + min_disp + k1 + 1]
-                dst = out[o + k0:o + k1 + 1]
-                for j in range(src.shape[0]):
-                    dst[j] = _popcount64(cl ^ src[j])
-                if masked:
-                    for k in range(k0, k1 + 1):
-                        if not right_valid[y, x - min_disp - k]:
-                            out[o + k] = top
+            base = w - 1 - x + min_disp
+            if k0 == a and k1 == b - 1:  # the whole run (most pixels): one plain loop
+                src = reversed_right[base + a:base + b]
+                for j in range(b - a):
+                    run[j] = _popcount64(cl ^ src[j])
+            else:
+                for j in range(b - a):
+                    k = a + j
+                    run[j] = _popcount64(cl ^ reversed_right[base + k]) if k0 <= k <= k1 else top
+            if masked:
+                for k in range(k0, k1 + 1):
+                    if not right_valid[y, x - min_disp - k]:
+                        run[k - a] = top
     return out
 
 

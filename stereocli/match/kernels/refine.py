@@ -383,20 +383,26 @@ def _line_fit_pass(disp, image, radius: int, vertical: bool, sigma_space: float,
             # wrap-around and LLVM vectorises them (6x faster than indexing with x + dx).
             centre_d = d0[x0:x1]
             other_d = nb[x0 + dx:x1 + dx]
+            centre_g = image[0, y, x0:x1]
+            other_g = image[0, yy, x0 + dx:x1 + dx]
             d2 = dist2[x0:x1]
-            d2[:] = 0.0
-            for c in range(nc):  # channels outside, x inside
-                centre = image[c, y, x0:x1]
-                other = image[c, yy, x0 + dx:x1 + dx]
-                for i in range(n):
-                    q = other[i] - centre[i]
-                    d2[i] += q * q
+            if nc > 1:  # colour: squared distances summed channel by channel (x inside)
+                d2[:] = 0.0
+                for c in range(nc):
+                    centre = image[c, y, x0:x1]
+                    other = image[c, yy, x0 + dx:x1 + dx]
+                    for i in range(n):
+                        q = other[i] - centre[i]
+                        d2[i] += q * q
             s_, st_, stt_, sv_, stv_ = s[x0:x1], st[x0:x1], stt[x0:x1], sv[x0:x1], stv[x0:x1]
             for i in range(n):
                 v = other_d[i] - centre_d[i]
                 near = abs(v) <= gate  # False for another surface, or an inf neighbour
+                # Grey guides take the distance here (one pass per offset, not two).
+                q = other_g[i] - centre_g[i]
+                q2 = q * q if nc == 1 else d2[i]
                 # Tukey's biweight of the colour distance (arithmetic only, unlike exp).
-                cw = max(np.float32(0.0), np.float32(1.0) - d2[i] * inv_range2)
+                cw = max(np.float32(0.0), np.float32(1.0) - q2 * inv_range2)
                 wt = ws * cw * cw if near else np.float32(0.0)
                 v = v if near else np.float32(0.0)
                 s_[i] += wt

@@ -53,6 +53,7 @@ class SGMParams:
     align: int = param(8, "coarse-to-fine: the kernel computes each window within a run of hypotheses on this grid (whole vector loops; same result)", low=1, high=64)
     coarse_paths: int = param(0, "coarse-to-fine: path directions at the coarse level (0 = paths)", choices=(0, 2, 4, 8, 16))
     coarse_min_ndisp: int = param(0, "coarse-to-fine only for ranges of more disparities than this (a narrow range leaves the windows little to cut, and the full-range search is then faster)", low=0, high=4096)
+    coarse_min_volume: float = param(0.0, "coarse-to-fine only for cost volumes of more than this many million cells (H·W·D): on a small volume the coarse level costs more than the windows save, and the full-range search is faster", unit="M cells", low=0.0, high=1e6)
     coarse_levels: int = param(1, "coarse-to-fine: coarser levels below full resolution (each halves the image; only the coarsest searches the full range)", low=1, high=4)
 
 
@@ -259,8 +260,9 @@ def _run_windowed(state: MatchState, p: SGMParams) -> None:
 def run_sgm(state: MatchState, p: SGMParams, coarse: bool | None = None) -> None:
     """Run SGM on ``state.cost``; sets ``disparity`` and replaces ``cost`` by the uint16 sums
     (coarse-to-fine: see :func:`_run_windowed`)."""
+    h, w = state.shape
     if ((p.coarse if coarse is None else coarse) and state.cost_call is not None
-            and state.ndisp > max(4, p.coarse_min_ndisp)):
+            and state.ndisp > max(4, p.coarse_min_ndisp) and h * w * state.ndisp > p.coarse_min_volume * 1e6):
         _run_windowed(state, p)
         return
     if state.cost is None and state.cost_call is not None:  # left to this stage (runs_cost, coarse level)
