@@ -17,8 +17,10 @@ Scoring rules (stated again in the table header):
 * Middlebury 2001/2003: bad > 1.0 px, nonocc masks *derived* from the GT (MANIFEST rule),
   disparity ranges of the SGM paper (16, 32, 64, 64).
 Timing: every method runs once to warm up (numba compilation, OpenCV allocations), then the
-best of ``--repeat`` runs is kept. Ratios to SGBM 3WAY are measured in the same process and
-run, so they survive a noisy machine better than absolute seconds.
+methods take turns for ``--repeat`` rounds (A, B, A, B, ...: a machine that slows down for a
+while, as shared VMs do for minutes at a time, slows every method alike) and each keeps its
+best run. Ratios to SGBM 3WAY are measured in the same process and rounds, so they survive a
+noisy machine better than absolute seconds. (Pandora, a subprocess of seconds, runs once.)
 """
 
 from __future__ import annotations
@@ -178,6 +180,28 @@ def timed(fn, repeat: int, warm: bool) -> tuple[np.ndarray, float]:
     return out, best
 
 
+#: Pause between two timed calls of different methods. The previous method's worker threads
+#: keep spinning for a few ms after a call (numba's OpenMP team, OpenCV's pool): measured here,
+#: OpenCV right after stereocli ran 40 % slower with no pause, 20 % with 5 ms, 1-2 % with 10 ms;
+#: stereocli right after OpenCV 2-3 % slower with 10 ms. Longer idles let the cores clock down
+#: (5 % slower with 30 ms).
+TURN_GAP_S = 0.01
+
+
+def timed_in_turns(fns: dict, repeat: int) -> dict[str, tuple[np.ndarray, float]]:
+    """Each function warmed up once, then all of them in turns for ``repeat`` rounds; returns
+    ``{name: (last output, best seconds)}``."""
+    outs = {name: fn() for name, fn in fns.items()}
+    best = dict.fromkeys(fns, np.inf)
+    for _ in range(repeat):
+        for name, fn in fns.items():
+            time.sleep(TURN_GAP_S)
+            t0 = time.perf_counter()
+            outs[name] = fn()
+            best[name] = min(best[name], time.perf_counter() - t0)
+    return {name: (outs[name], best[name]) for name in fns}
+
+
 # --- scoring and tables -------------------------------------------------------------------------
 
 
@@ -260,8 +284,10 @@ def main(argv=None) -> int:
 
     results: dict = {}
     for scene in scenes:
+        runs = timed_in_turns({name: (lambda fn=fn: fn(scene)) for name, fn in methods.items() if "Pandora" not in name},
+                              args.repeat)
         for name, fn in methods.items():
-            disp, seconds = timed(lambda: fn(scene), args.repeat, warm="Pandora" not in name)
+            disp, seconds = runs[name] if name in runs else timed(lambda: fn(scene), 1, warm=False)
             h, w = disp.shape
             res = score(scene, disp, seconds)
             results[(scene.name, name)] = {"scene": scene.name, "method": name, "dataset": scene.dataset,

@@ -2,12 +2,11 @@
 """Where a preset's time goes: per-stage wall time on MiddEval3 trainingQ (or v2) pairs, against OpenCV
 SGBM 3WAY on the same pair in the same process.
 
-Each preset runs once to warm up (numba caches, allocations), then ``--repeat`` times with the
-presets interleaved; every stage keeps its best time over the runs (``MatchResult.timings``,
-seconds per stage), the total its best end-to-end time. OpenCV runs after all stereocli runs
-of a scene: its worker threads keep spinning for a while after a call and would slow the
-next numba stage down. ``×3WAY`` is the total over SGBM 3WAY's best time (same disparity
-range, same thread count, the harness's recommended parameters).
+Each preset and OpenCV SGBM 3WAY run once to warm up (numba caches, allocations), then take
+turns for ``--repeat`` rounds (as in ``accuracy.py``, with a short pause between calls); every
+stage keeps its best time over the runs (``MatchResult.timings``, seconds per stage), the
+total its best end-to-end time. ``×3WAY`` is the total over SGBM 3WAY's best time (same
+disparity range, same thread count, the harness's recommended parameters).
 
     python benchmarks/stage_times.py                                   # default on 3 scenes
     python benchmarks/stage_times.py --presets default,fast --scenes Adirondack,Vintage --repeat 9
@@ -30,7 +29,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "benchmarks"))
 
-from accuracy import DEFAULT_DATA, load_scenes, run_opencv, timed  # noqa: E402
+from accuracy import DEFAULT_DATA, TURN_GAP_S, load_scenes, run_opencv  # noqa: E402
 from stereocli.config import build_config  # noqa: E402
 from stereocli.match.pipeline import match_pair  # noqa: E402
 
@@ -40,20 +39,28 @@ def stage_label(key: str) -> str:
     return key.split(".", 1)[-1]
 
 
-def best_stage_times(scene, configs: dict, repeat: int) -> dict[str, dict[str, float]]:
-    """{preset: {stage: best seconds, ..., 'total': best seconds}} with the presets interleaved."""
+def best_stage_times(scene, configs: dict, repeat: int) -> tuple[dict[str, dict[str, float]], float]:
+    """``({preset: {stage: best seconds, ..., 'total': best seconds}}, SGBM 3WAY's best
+    seconds)``, the presets and OpenCV taking turns."""
     best: dict[str, dict[str, float]] = {p: defaultdict(lambda: np.inf) for p in configs}
+    sgbm = np.inf
     for p, cfg in configs.items():  # warm-up
         match_pair(scene.left, scene.right, cfg, ndisp=scene.ndisp)
+    run_opencv("3way", scene)
     for _ in range(repeat):
         for p, cfg in configs.items():
+            time.sleep(TURN_GAP_S)
             t0 = time.perf_counter()
             result = match_pair(scene.left, scene.right, cfg, ndisp=scene.ndisp)
             total = time.perf_counter() - t0
             best[p]["total"] = min(best[p]["total"], total)
             for key, seconds in result.timings.items():
                 best[p][stage_label(key)] = min(best[p][stage_label(key)], seconds)
-    return best
+        time.sleep(TURN_GAP_S)
+        t0 = time.perf_counter()
+        run_opencv("3way", scene)
+        sgbm = min(sgbm, time.perf_counter() - t0)
+    return best, sgbm
 
 
 def main(argv=None) -> int:
@@ -78,8 +85,7 @@ def main(argv=None) -> int:
     scenes = load_scenes(args.data, args.datasets.split(","), set(filter(None, args.scenes.split(","))))
     print(f"{args.threads} threads, best of {args.repeat} per stage; ms per pair\n")
     for scene in scenes:
-        best = best_stage_times(scene, configs, args.repeat)
-        _, sgbm = timed(lambda: run_opencv("3way", scene), args.repeat, True)
+        best, sgbm = best_stage_times(scene, configs, args.repeat)
         h, w = scene.left.shape[:2]
         print(f"### {scene.name} ({w}×{h}, D = {scene.ndisp}); OpenCV SGBM 3WAY {sgbm * 1e3:.1f} ms\n")
         stages = [k for k in dict.fromkeys(k for p in presets for k in best[p]) if k != "total"]
