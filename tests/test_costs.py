@@ -239,3 +239,25 @@ def test_invalid_parameter_through_config():
         build_config(sets=["cost.name=sad", "cost.window=[4,4]"])
     cfg = build_config(sets=["cost.name=zncc", "cost.window=[5,7]"])
     assert cfg.cost.params.window == (5, 7)
+
+
+@pytest.mark.parametrize("window", [(3, 3), (5, 7), (7, 9), (5, 13)])
+def test_census_transform_bit_strings(window):
+    # Strings longer than 32 bits are built in two halves: the order must stay raster order,
+    # most significant first, bit = neighbour darker than the centre, border replicated.
+    from stereocli.match.kernels.cost import census_transform
+
+    rng = np.random.default_rng(sum(window))
+    img = rng.integers(0, 6, (9, 15)).astype(np.float32)  # many ties: equal is not darker
+    hh, hw = window[0] // 2, window[1] // 2
+    h, w = img.shape
+    got = census_transform(img, hh, hw)
+    for y in range(h):
+        for x in range(w):
+            expected = 0
+            for dy in range(-hh, hh + 1):
+                for dx in range(-hw, hw + 1):
+                    if dy or dx:
+                        neighbour = img[min(max(y + dy, 0), h - 1), min(max(x + dx, 0), w - 1)]
+                        expected = (expected << 1) | int(neighbour < img[y, x])
+            assert int(got[y, x]) == expected

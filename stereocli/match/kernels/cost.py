@@ -14,19 +14,27 @@ from numba import njit, prange
 def _census_rows(padded: np.ndarray, h: int, w: int, half_h: int, half_w: int) -> np.ndarray:
     # ``padded`` is the image with ``half_h``/``half_w`` replicated border rows/columns. The
     # innermost loop runs along x over row slices with the window offset fixed, which LLVM
-    # vectorises (about 10x faster than building each pixel's string in turn).
-    out = np.zeros((h, w), np.uint64)
+    # vectorises (about 10x faster than building each pixel's string in turn). The bits
+    # collect in two uint32 halves, the last 32 neighbours in ``low`` and any before them in
+    # ``high``: lanes as wide as the float32 comparisons (a quarter faster than uint64 lanes).
+    out = np.empty((h, w), np.uint64)
+    n_bits = (2 * half_h + 1) * (2 * half_w + 1) - 1
     for y in prange(h):
-        bits = out[y]
+        high = np.zeros(w, np.uint32)
+        low = np.zeros(w, np.uint32)
         centre = padded[y + half_h, half_w:half_w + w]
+        bit = 0
         for dy in range(-half_h, half_h + 1):
             for dx in range(-half_w, half_w + 1):
                 if dy == 0 and dx == 0:
                     continue
                 row = padded[y + half_h + dy, half_w + dx:half_w + dx + w]
+                bits = high if bit < n_bits - 32 else low
                 for x in range(w):
-                    darker = np.float64(centre[x] - row[x]) > 0.0
-                    bits[x] = (bits[x] << np.uint64(1)) | np.uint64(darker)
+                    bits[x] = (bits[x] << np.uint32(1)) | np.uint32(centre[x] > row[x])
+                bit += 1
+        for x in range(w):
+            out[y, x] = (np.uint64(high[x]) << np.uint64(32)) | np.uint64(low[x])
     return out
 
 
