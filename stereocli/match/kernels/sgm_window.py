@@ -39,7 +39,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from .sgm import DOWN_DIRECTIONS, INF, INT16_MAX, _pack, _penalty2
+from .sgm import DOWN_DIRECTIONS, GAP, INF, INT16_MAX, _pack, _penalty2
 
 #: Sum value of a hypothesis outside a pixel's window in an expanded volume (:func:`expand_sums`).
 S_MAX = 65535
@@ -130,7 +130,8 @@ def _pass_rows(cq, nd: int, mul, pens, total, offset, win_lo, win_hi, run_lo, ru
     ``costs``/``costs_r`` (H, W, 3) float32 (``costs_r`` only if not empty) and, if ``second``
     is not empty, the best sum more than one hypothesis from the left winner. ``lslot`` (K, 3,
     W, 2) int32 holds the window each path-cost buffer of ``lbuf`` holds (its entries outside
-    are sentinels); ``hbuf`` (2, D + 4) is reset to sentinels here.
+    are sentinels); ``hbuf`` (2, D + 4) is reset to sentinels here. (Each of these buffers may be
+    longer than its shape says: the spare ``GAP`` that keeps the threads' buffers apart.)
     """
     h, w = win_lo.shape
     nk = dirs.shape[0]
@@ -299,11 +300,12 @@ def sgm_window_two_pass(cq, nd: int, mul: int, pens, total, offset, win_lo, win_
     h, w = win_lo.shape
     nk = dirs.shape[0]
     split = h // 2
-    lbuf = np.full((2, nk, 3, w, nd + 4), INT16_MAX - p1, np.int16)
-    lslot = np.zeros((2, nk, 3, w, 2), np.int32)  # every buffer starts as all sentinels
-    hbuf = np.empty((2, 2, nd + 4), np.int16)
-    mins = np.zeros((2, nk, 3, w), np.int16)
-    rbest = np.zeros((2, w if want_right else 0), np.uint32)
+    # Each thread's buffers end with spare elements (GAP: no cache line shared between threads).
+    lbuf = np.full((2, nk, 3, w + 1, nd + 4), INT16_MAX - p1, np.int16)
+    lslot = np.zeros((2, nk, 3, w + GAP, 2), np.int32)  # every buffer starts as all sentinels
+    hbuf = np.empty((2, 2, nd + 4 + GAP), np.int16)
+    mins = np.zeros((2, nk, 3, w + GAP), np.int16)
+    rbest = np.zeros((2, w + GAP if want_right else 0), np.uint32)
     hr = h if want_right else 0
     wr = w if want_right else 0
     disp = np.empty((h, w), np.float32)
