@@ -121,12 +121,23 @@ def _pack(cost, k) -> np.uint32:
 
 
 @njit(cache=True, inline="always")
-def _winner(s, k0: int, k1: int) -> int:
-    """Index of the smallest of ``s[k0..k1]`` (uint16), the first one on ties."""
+def _min_packed(s, base, k0: int, k1: int, rbest, rb, want_right: bool) -> np.uint32:
+    # Smallest (s[base + k], k) packed (:func:`_pack`) over k0 ≤ k ≤ k1: one branch-free pass,
+    # ties to the smaller k. With ``want_right`` the right view takes the same values along the
+    # diagonals: left pixel x at hypothesis k is right pixel xr = x − min_disp − k, whose slot
+    # W − 1 − xr = rb + k runs forward with k. Indices are unsigned (numba then emits no
+    # negative-index fix-ups and the loops vectorise): ``base`` and ``rb`` (uint64) may have
+    # wrapped, every ``base + k`` and ``rb + k`` is in range.
     best = np.uint32(0xFFFFFFFF)
-    for k in range(k0, k1 + 1):
-        best = min(best, _pack(s[k], k))
-    return int(best & np.uint32(0xFFFF))
+    if want_right:
+        for k in range(np.uint64(k0), np.uint64(k1 + 1)):
+            pk = _pack(s[base + k], k)
+            best = min(best, pk)
+            rbest[rb + k] = min(rbest[rb + k], pk)
+    else:
+        for k in range(np.uint64(k0), np.uint64(k1 + 1)):
+            best = min(best, _pack(s[base + k], k))
+    return best
 
 
 @njit(cache=True)
@@ -190,10 +201,10 @@ def _pass_rows(cq, mul, guide, total, dirs, forward: bool, i0: int, i1: int, fre
         if not fresh:
             # The row's sums are complete: left WTA among hypotheses whose right pixel x − d
             # lies inside the image, and the right view (Hirschmüller 2008 §2.5, same volume:
-            # right pixel xr takes the d minimising S[y, xr + d, d]). For the right view each
-            # left pixel updates a best-so-far array indexed by j = W − 1 − xr, which runs
-            # forward with k, so the update loop vectorises; (value, k) packed in a uint32 keeps
-            # the smallest disparity on ties whatever the order of the pixels.
+            # right pixel xr takes the d minimising S[y, xr + d, d]) in the same pass: each left
+            # pixel updates a best-so-far array indexed by j = W − 1 − xr (:func:`_min_packed`);
+            # (value, k) packed in a uint32 keeps the smallest disparity on ties whatever the
+            # order of the pixels.
             if want_right:
                 rbest[:] = 0xFFFFFFFF
             for x in range(w):
@@ -202,18 +213,9 @@ def _pass_rows(cq, mul, guide, total, dirs, forward: bool, i0: int, i1: int, fre
                 if k1 < k0:
                     disp[y, x] = INF
                     continue
-                acc = total[y, x]
-                if want_right:  # both views in one pass
-                    base = w - 1 - x + min_disp
-                    dst = rbest[base + k0:base + k1 + 1]
-                    best = np.uint32(0xFFFFFFFF)
-                    for k in range(k0, k1 + 1):
-                        pk = _pack(acc[k], k)
-                        best = min(best, pk)
-                        dst[k - k0] = min(dst[k - k0], pk)
-                    disp[y, x] = np.float32(min_disp + np.int64(best & np.uint32(0xFFFF)))
-                else:
-                    disp[y, x] = np.float32(min_disp + _winner(acc, k0, k1))
+                best = _min_packed(total[y, x], np.uint64(0), k0, k1, rbest, np.uint64(w - 1 - x + min_disp),
+                                   want_right)
+                disp[y, x] = np.float32(min_disp + np.int64(best & np.uint32(0xFFFF)))
             if want_right:
                 for xr in range(w):
                     v = rbest[w - 1 - xr]

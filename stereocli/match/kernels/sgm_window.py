@@ -39,7 +39,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from .sgm import DOWN_DIRECTIONS, GAP, INF, INT16_MAX, _pack, _penalty2
+from .sgm import DOWN_DIRECTIONS, GAP, INF, INT16_MAX, _min_packed, _penalty2
 
 #: Sum value of a hypothesis outside a pixel's window in an expanded volume (:func:`expand_sums`).
 S_MAX = 65535
@@ -218,22 +218,9 @@ def _pass_rows(cq, nd: int, mul, pens, total, offset, win_lo, win_hi, run_lo, ru
             if k1 < k0:
                 disp[y, x] = INF
                 continue
-            uk0 = np.uint64(k0)
-            uk1 = np.uint64(k1 + 1)
-            # Smallest (sum, k) packed in a uint32 (:func:`.sgm._pack`): one branch-free pass,
-            # ties to the smaller k. The right view takes the same values along the diagonals:
-            # right pixel xr = x − min_disp − k is slot W − 1 − xr = rb + k, which runs forward
-            # with k (rb may be negative; the unsigned sum wraps to the right slot).
-            lbest = np.uint32(0xFFFFFFFF)
-            if want_right:
-                rb = np.uint64(w - 1 - x + min_disp)
-                for k in range(uk0, uk1):
-                    pk = _pack(total[base + k], k)
-                    lbest = min(lbest, pk)
-                    rbest[rb + k] = min(rbest[rb + k], pk)
-            else:
-                for k in range(uk0, uk1):
-                    lbest = min(lbest, _pack(total[base + k], k))
+            # Smallest (sum, k) packed in a uint32, both views in one pass (:func:`.sgm._min_packed`;
+            # w − 1 − x + min_disp may be negative: the unsigned sum wraps to the right slot).
+            lbest = _min_packed(total, base, k0, k1, rbest, np.uint64(w - 1 - x + min_disp), want_right)
             kb = int(lbest & np.uint32(0xFFFF))
             vmin = lbest >> np.uint32(16)
             disp[y, x] = np.float32(min_disp + kb)
