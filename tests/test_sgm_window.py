@@ -12,6 +12,7 @@ from stereocli.match.kernels import sgm as ks
 from stereocli.match.kernels import sgm_window as kw
 from stereocli.match.optimize import sgm as osgm
 from stereocli.match.pipeline import match_pair
+from stereocli.match.state import MatchState
 from test_kernels_sgm import reference_sgm
 from test_sgm import bad, run, warp_pair
 
@@ -311,3 +312,27 @@ def test_valid_masks_are_honoured_by_both_searches(coarse):
     assert right_valid[ys[inside], xr[inside]].all()
     assert np.isfinite(d[:, 40:60]).mean() > 0.95  # away from the band the plane is found
     np.testing.assert_allclose(d[:, 40:60][np.isfinite(d[:, 40:60])], 6.0, atol=0.5)
+
+
+@pytest.mark.parametrize("min_disp, ndisp", [(0, 60), (0, 73), (-5, 30), (3, 16)])
+def test_coarse_level_range_covers_the_range_in_whole_vector_steps(monkeypatch, min_disp, ndisp):
+    # The coarse level searches [floor(min/2), ceil(max/2)] extended at the far end to a
+    # multiple of COARSE_RANGE_STEP hypotheses.
+    seen = []
+    real = osgm.run_sgm
+
+    def spy(state, p, coarse=None):
+        seen.append((state.min_disp, state.ndisp))
+        return real(state, p, coarse)
+
+    monkeypatch.setattr(osgm, "run_sgm", spy)
+    gt = np.full((32, 96), float(max(min_disp + 2, 0)), np.float32)
+    left, right = warp_pair(gt, seed=1)
+    cfg = build_config([], WINDOWED)
+    state = MatchState(left.astype(np.float32), right.astype(np.float32), min_disp, ndisp)
+    state.cost_call = cfg.cost
+    osgm.coarse_disparity(state, cfg.optimizer.params)
+    lo, n = seen[0]
+    assert lo == min_disp // 2
+    assert n % osgm.COARSE_RANGE_STEP == 0
+    assert lo + n - 1 >= -(-(min_disp + ndisp - 1) // 2) > lo + n - 1 - osgm.COARSE_RANGE_STEP

@@ -147,9 +147,18 @@ def _upsample_windows(nmin, nmax, h: int, w: int, min_disp: int, ndisp: int, mar
     return lo_map, hi_map
 
 
+#: The coarse level searches a range of a multiple of this many hypotheses (extended beyond
+#: the far end). The full-range kernel's vector loops then run whole: an odd tail runs scalar
+#: (at D/2 = 31, Shelves' coarse level, the tail of 15 took as long as the 16 vector lanes).
+#: The windows clip the extra hypotheses away. MiddEval3: 3-7 % faster per pair, scores within
+#: ±0.06 per scene.
+COARSE_RANGE_STEP = 8
+
+
 def coarse_disparity(state: MatchState, p: SGMParams) -> np.ndarray:
-    """Left disparities of the pair at half resolution (full range, same cost and SGM), LR
-    checked (±1 coarse px); (ceil(H/2), ceil(W/2)) float32 in coarse px, +inf where rejected."""
+    """Left disparities of the pair at half resolution (full range, rounded up to
+    ``COARSE_RANGE_STEP`` hypotheses; same cost and SGM), LR checked (±1 coarse px);
+    (ceil(H/2), ceil(W/2)) float32 in coarse px, +inf where rejected."""
     h, w = state.shape
 
     def half(img: np.ndarray) -> np.ndarray:
@@ -161,6 +170,7 @@ def coarse_disparity(state: MatchState, p: SGMParams) -> np.ndarray:
 
     lo_d = int(np.floor(state.min_disp / 2))
     hi_d = int(np.ceil((state.min_disp + state.ndisp - 1) / 2))
+    hi_d = lo_d + -(-(hi_d - lo_d + 1) // COARSE_RANGE_STEP) * COARSE_RANGE_STEP - 1
     sub = MatchState(half(state.left), half(state.right), lo_d, hi_d - lo_d + 1, half_mask(state.left_valid),
                      half_mask(state.right_valid), want_right=True, integer_cost_ok=state.integer_cost_ok,
                      threads=state.threads)
