@@ -210,26 +210,20 @@ def test_tiny_ranges_run_the_full_range_search(ndisp):
     assert bad(res.disparity, gt, 8, 0.25) == 0.0
 
 
-def test_coarse_min_ndisp_falls_back_to_the_full_range_search():
-    gt = np.tile(np.linspace(3.0, 14.0, 96, dtype=np.float32), (48, 1))
-    left, right = warp_pair(gt, seed=4)
-    dense = run(left, right, ["optimizer.coarse=false"], ndisp=24)
-    below = run(left, right, ["optimizer.coarse_min_ndisp=24", "optimizer.coarse_min_volume=0"], ndisp=24)
-    above = run(left, right, ["optimizer.coarse_min_ndisp=23", "optimizer.coarse_min_volume=0"], ndisp=24)
-    np.testing.assert_array_equal(below.disparity, dense.disparity)
-    assert not np.array_equal(above.disparity, dense.disparity)  # the windowed search ran
-
-
-def test_coarse_min_volume_falls_back_to_the_full_range_search():
+@pytest.mark.parametrize("limit, at, below, other", [
+    ("coarse_min_ndisp", "24", "23", "coarse_min_volume=0"),
     # 48 x 96 x 24 = 110592 cells: searched at full range up to a limit of 0.110592 M cells.
+    ("coarse_min_volume", "0.110592", "0.1105", "coarse_min_ndisp=0"),
+])
+def test_coarse_limits_fall_back_to_the_full_range_search(limit, at, below, other):
     gt = np.tile(np.linspace(3.0, 14.0, 96, dtype=np.float32), (48, 1))
     left, right = warp_pair(gt, seed=4)
     dense = run(left, right, ["optimizer.coarse=false"], ndisp=24)
-    at = run(left, right, ["optimizer.coarse_min_ndisp=0", "optimizer.coarse_min_volume=0.110592"], ndisp=24)
-    below = run(left, right, ["optimizer.coarse_min_ndisp=0", "optimizer.coarse_min_volume=0.1105"], ndisp=24)
-    np.testing.assert_array_equal(at.disparity, dense.disparity)
-    assert not np.array_equal(below.disparity, dense.disparity)  # the windowed search ran
-    assert bad(below.disparity, gt, 20, 1.0) < 0.01
+    at_limit = run(left, right, [f"optimizer.{limit}={at}", f"optimizer.{other}"], ndisp=24)
+    above = run(left, right, [f"optimizer.{limit}={below}", f"optimizer.{other}"], ndisp=24)
+    np.testing.assert_array_equal(at_limit.disparity, dense.disparity)
+    assert not np.array_equal(above.disparity, dense.disparity)  # the windowed search ran
+    assert bad(above.disparity, gt, 20, 1.0) < 0.01
 
 
 def test_coarse_to_fine_skips_the_dense_cost_volume():
