@@ -59,12 +59,12 @@ def region_voting(state: MatchState, p: RegionVotingParams) -> None:
     arms = ka.cross_arms_two_threshold(left_guide(state, p.color), float(p.tau1), float(p.tau2), int(p.max_arm),
                                        int(p.max_arm2))
     disp = np.ascontiguousarray(state.disparity, dtype=np.float32)
-    for _ in range(p.iterations):
+    for i in range(p.iterations):
         new = kv.region_vote(disp, arms, state.min_disp, state.ndisp, int(p.min_votes), float(p.min_share), int(p.stride))
-        done = np.array_equal(np.isfinite(new), np.isfinite(disp))
+        done = i == p.iterations - 1 or np.array_equal(np.isfinite(new), np.isfinite(disp))
         disp = new
         if done:
-            break  # nothing was filled: further passes would see the same votes
+            break  # the last pass, or nothing was filled: further passes would see the same votes
     state.disparity = disp
 
 
