@@ -371,6 +371,13 @@ class CensusParams:
         check_odd_window("cost.window", self.window, 65)
 
 
+def _census_strings(state: MatchState, window: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Census bit strings of the left and right grey images for a (height, width) window."""
+    wh, ww = window
+    return (kc.census_transform(np.ascontiguousarray(state.gray("left")), wh // 2, ww // 2),
+            kc.census_transform(np.ascontiguousarray(state.gray("right")), wh // 2, ww // 2))
+
+
 @register("cost", "census", CensusParams)
 def census_cost(state: MatchState, p: CensusParams) -> None:
     """Hamming distance of census transforms (Zabih & Woodfill 1994) on the grey images.
@@ -380,8 +387,7 @@ def census_cost(state: MatchState, p: CensusParams) -> None:
     windows are more discriminative and slower. The default for SGM. Range [0, n − 1].
     """
     wh, ww = p.window
-    left = kc.census_transform(np.ascontiguousarray(state.gray("left")), wh // 2, ww // 2)
-    right = kc.census_transform(np.ascontiguousarray(state.gray("right")), wh // 2, ww // 2)
+    left, right = _census_strings(state, p.window)
     state.cost_max = float(wh * ww - 1)
     dtype = np.uint8 if state.integer_cost_ok else np.float32
     state.cost = kc.hamming_volume(left, right, state.min_disp, state.ndisp, state.cost_max, dtype)
@@ -397,8 +403,7 @@ def _census_windowed(state: MatchState, p: CensusParams, runs) -> tuple[np.ndarr
     :func:`stereocli.match.kernels.sgm_window.window_runs`), honouring ``right_valid``;
     returns ``(costs, cost_max)``."""
     wh, ww = p.window
-    left = kc.census_transform(np.ascontiguousarray(state.gray("left")), wh // 2, ww // 2)
-    right = kc.census_transform(np.ascontiguousarray(state.gray("right")), wh // 2, ww // 2)
+    left, right = _census_strings(state, p.window)
     cost_max = float(wh * ww - 1)
     valid = state.right_valid if state.right_valid is not None else np.zeros((0, 0), np.bool_)
     _, _, run_lo, run_hi, offset, n = runs
@@ -454,8 +459,7 @@ def ad_census_cost(state: MatchState, p: ADCensusParams) -> None:
     contrast between large costs. Defaults: 9×7 census, λ_AD = 10, λ_census = 30 (the paper's).
     """
     wh, ww = p.window
-    cl = kc.census_transform(np.ascontiguousarray(state.gray("left")), wh // 2, ww // 2)
-    cr = kc.census_transform(np.ascontiguousarray(state.gray("right")), wh // 2, ww // 2)
+    cl, cr = _census_strings(state, p.window)
     robust = p.combine == "exp"
     cmax = 2.0 if robust else 255.0 / p.lambda_ad + (wh * ww - 1) / p.lambda_census
     state.cost_max = float(cmax)

@@ -159,7 +159,6 @@ def coarse_disparity(state: MatchState, p: SGMParams) -> np.ndarray:
     """Left disparities of the pair at half resolution (full range, rounded up to
     ``COARSE_RANGE_STEP`` hypotheses; same cost and SGM), LR checked (±1 coarse px);
     (ceil(H/2), ceil(W/2)) float32 in coarse px, +inf where rejected."""
-    h, w = state.shape
 
     def half(img: np.ndarray) -> np.ndarray:
         out = half_resolution(np.ascontiguousarray(img, dtype=np.float32))
@@ -201,15 +200,15 @@ def search_windows(coarse: np.ndarray, shape: tuple[int, int], min_disp: int, nd
     return lo, hi
 
 
-def _integer_costs(cost_max: float, dtype, p: SGMParams) -> tuple[int, float, int, int, int] | None:
-    """``(mul, scale, cap, p1, p2)`` when integer costs (e.g. census Hamming distances) can be
+def _integer_costs(cost_max: float, dtype, p: SGMParams) -> tuple[int, float, int, int] | None:
+    """``(mul, scale, p1, p2)`` when integer costs (e.g. census Hamming distances) can be
     used as they are, times an integer factor inside the kernel (no quantised copy); else None."""
     scale, cap, p1, p2 = quantization(cost_max, p.paths, p.p1, p.p2, p.levels)
     mul = int(scale)
     if dtype not in (np.uint8, np.uint16) or mul < 1:
         return None
-    cap = int(round(cost_max)) * mul
-    return mul, float(mul), cap, int(round(p.p1 * cap)), int(round(max(p.p2, p.p1) * cap))
+    cap = int(round(cost_max)) * mul  # the largest cost as the kernel reads it
+    return mul, float(mul), int(round(p.p1 * cap)), int(round(max(p.p2, p.p1) * cap))
 
 
 def _quantized(state: MatchState, p: SGMParams) -> tuple[np.ndarray, int, float, int, int]:
@@ -218,7 +217,7 @@ def _quantized(state: MatchState, p: SGMParams) -> tuple[np.ndarray, int, float,
     cost = state.cost
     exact = _integer_costs(state.cost_max, cost.dtype, p)
     if exact is not None:
-        mul, scale, _, p1, p2 = exact
+        mul, scale, p1, p2 = exact
         cq = cost
     else:
         scale, cap, p1, p2 = quantization(state.cost_max, p.paths, p.p1, p.p2, p.levels)
@@ -243,7 +242,7 @@ def _run_windowed(state: MatchState, p: SGMParams) -> None:
         costs, state.cost_max = windowed(state, call.params, runs)
         exact = _integer_costs(state.cost_max, costs.dtype, p)
     if exact is not None:
-        mul, scale, _, p1, p2 = exact
+        mul, scale, p1, p2 = exact
     else:
         if state.cost is None:  # the pipeline left the cost to this stage
             run_cost_stage(state, call)
