@@ -216,3 +216,134 @@ def test_local_consistency_min_spread_votes_only_near_discontinuities():
     assert np.all(conf[:, ~band] == 1.0)
     np.testing.assert_array_equal(banded[:, band], full[:, band])
     assert not np.array_equal(full[:, ~band], disp[:, ~band])  # the full vote does change them
+
+
+def line_vote_reference(disp, left, right, min_disp, ndisp, radius, gamma_s, gamma_c, gamma_t, min_change,
+                        band, vertical):
+    """One pass of the separable vote, pixel by pixel with exp per vote (the kernel's tables
+    are exact for 8-bit-valued images): centres are the valid pixels with a bin at least
+    ``min_change`` away within ``band`` along the line; votes come from the segment."""
+    h, w, c = left.shape
+    out = disp.copy()
+
+    def bin_of(d):
+        return int(np.floor(d - min_disp + 0.5)) if np.isfinite(d) and 0 <= np.floor(d - min_disp + 0.5) < ndisp else -1
+
+    for y in range(h):
+        for x in range(w):
+            own = bin_of(disp[y, x])
+            if own < 0:
+                continue
+            line = [(y + t, x) if vertical else (y, x + t) for t in range(-radius, radius + 1)]
+            line = [(t, gy, gx) for t, (gy, gx) in zip(range(-radius, radius + 1), line) if 0 <= gy < h and 0 <= gx < w]
+            if min_change > 0 and not any(abs(t) <= band and bin_of(disp[gy, gx]) >= 0
+                                          and abs(bin_of(disp[gy, gx]) - own) >= min_change for t, gy, gx in line):
+                continue
+            mass, sumd = {}, {}
+            for t, gy, gx in line:
+                k = bin_of(disp[gy, gx])
+                if k < 0:
+                    continue
+                wgt = np.exp(-abs(t) / gamma_s - np.abs(left[y, x] - left[gy, gx]).mean() / gamma_c)
+                kd = k + min_disp
+                inside = 0 <= x - kd < w and 0 <= gx - kd < w
+                dt = np.abs(right[y, x - kd] - right[gy, gx - kd]).mean() if inside else 255.0
+                wgt *= np.exp(-dt / gamma_t)
+                mass[k] = mass.get(k, 0.0) + wgt
+                sumd[k] = sumd.get(k, 0.0) + wgt * float(disp[gy, gx])
+            best = min(mass, key=lambda k: (-mass[k], k))
+            if abs(best - own) >= min_change:
+                out[y, x] = sumd[best] / mass[best]
+    return out
+
+
+@pytest.mark.parametrize("min_change,channels", [(0, 3), (2, 3), (2, 1)])
+def test_separable_local_consistency_matches_reference(min_change, channels):
+    # Rows, then columns of the result, on noisy random maps with holes, two surfaces and a
+    # range that starts below zero; colour (or grey) images with 8-bit values.
+    from stereocli.match.refine_segment import LocalConsistencyParams, local_consistency
+
+    rng = np.random.default_rng(5)
+    h, w = 17, 23
+    left = rng.integers(0, 256, (h, w, channels)).astype(np.float32)
+    right = rng.integers(0, 256, (h, w, channels)).astype(np.float32)
+    disp = (rng.uniform(-1, 2, (h, w)) + np.where(np.arange(w) > 11, 6.0, 0.0)).astype(np.float32)
+    disp[rng.random((h, w)) < 0.1] = np.inf
+    p = LocalConsistencyParams(separable=True, radius=4, gamma_s=4.0, band=2, min_change=min_change)
+    state = MatchState(left if channels == 3 else left[..., 0], right if channels == 3 else right[..., 0], -2, 14)
+    state.disparity = disp.copy()
+    local_consistency(state, p)
+    want = disp.copy()
+    for vertical in (False, True):
+        want = line_vote_reference(want, left, right, -2, 14, 4, 4.0, 12.0, 12.0, min_change, 2, vertical)
+    np.testing.assert_array_equal(np.isfinite(state.disparity), np.isfinite(disp))
+    fin = np.isfinite(want)
+    np.testing.assert_allclose(state.disparity[fin], want[fin], rtol=0, atol=1e-4)
+    assert not np.array_equal(state.disparity[fin], disp[fin])  # the vote did move some pixels
+    assert ((state.confidence > 0) & (state.confidence <= 1))[fin].all() and (state.confidence[~fin] == 0).all()
+
+
+def test_separable_local_consistency_moves_fattened_edges_and_keeps_slants():
+    # A foreground square (disparity 12) fattened by 3 px to the right and 2 px downwards onto a
+    # slanted background (sub-pixel values 3.0..5.4): the separable vote with min_change 2 puts
+    # the disparity edges back on the colour edges and leaves every background value as it was.
+    from stereocli.match.refine_segment import LocalConsistencyParams, local_consistency
+
+    h, w = 40, 60
+    image = np.full((h, w, 3), 60, np.float32)
+    image[10:25, 20:35] = 200  # the foreground square in the left image
+    background = (3.0 + 0.04 * np.arange(w)[None, :] + 0.0 * np.arange(h)[:, None]).astype(np.float32)
+    truth = background.copy()
+    truth[10:25, 20:35] = 12.0
+    fattened = background.copy()
+    fattened[10:27, 20:38] = 12.0
+    state = MatchState(image, image, 0, 16)  # right view = left: the match term is uniform
+    state.disparity = fattened.copy()
+    local_consistency(state, LocalConsistencyParams(separable=True, radius=8, gamma_s=8.0, band=4, min_change=2,
+                                                    gamma_t=1000.0))
+    np.testing.assert_array_equal(state.disparity[10:25, 20:35], 12.0)
+    moved = (fattened == 12.0) & (truth != 12.0)
+    assert moved.sum() == 17 * 18 - 15 * 15
+    # Moved pixels take the weighted mean of the background bin that won: within 0.5 px of truth.
+    assert np.abs(state.disparity[moved] - truth[moved]).max() < 0.5
+    np.testing.assert_array_equal(state.disparity[fattened != 12.0], truth[fattened != 12.0])
+
+
+def test_local_consistency_min_change_keeps_sub_pixel_values():
+    # A slanted plane whose 1-px bins change every 10 px: with min_change 2 no pixel moves (the
+    # winning bin is never 2 bins away); with 0 every voted pixel takes its bin's mean.
+    from stereocli.match.refine_segment import LocalConsistencyParams, local_consistency
+
+    h, w = 12, 50
+    rng = np.random.default_rng(2)
+    image = rng.integers(0, 256, (h, w, 3)).astype(np.float32)
+    disp = np.tile((4.0 + 0.1 * np.arange(w)).astype(np.float32), (h, 1))
+    for separable in (False, True):
+        kept = MatchState(image, image, 0, 16)
+        kept.disparity = disp.copy()
+        local_consistency(kept, LocalConsistencyParams(radius=3, separable=separable, min_change=2))
+        np.testing.assert_array_equal(kept.disparity, disp)
+        moved = MatchState(image, image, 0, 16)
+        moved.disparity = disp.copy()
+        local_consistency(moved, LocalConsistencyParams(radius=3, separable=separable, min_change=0))
+        assert not np.array_equal(moved.disparity, disp)
+
+
+def test_local_consistency_separable_rejects_fill_invalid_and_multiplies_confidence():
+    from stereocli.errors import ConfigError
+    from stereocli.match.refine_segment import LocalConsistencyParams, local_consistency
+
+    with pytest.raises(ConfigError, match="fill_invalid needs the square window"):
+        registry.get("refinement", "local_consistency").make_params({"separable": True, "fill_invalid": True})
+    h, w = 10, 30
+    image = np.full((h, w, 3), 90, np.float32)
+    disp = np.full((h, w), 5.0, np.float32)
+    disp[:, 15:] = 9.0
+    state = MatchState(image, image, 0, 16)
+    state.disparity = disp
+    state.confidence = np.full((h, w), 0.5, np.float32)  # e.g. from the confidence stage
+    local_consistency(state, LocalConsistencyParams(separable=True, radius=5, min_change=2))
+    # Far from the edge nothing is voted on (share 1): the earlier map is kept; at the edge it
+    # is multiplied by the winning share (< 1: both surfaces vote).
+    assert (state.confidence[:, :8] == 0.5).all()
+    assert (state.confidence[:, 14] < 0.5).all()

@@ -311,7 +311,8 @@ def replace_by_planes(disp, labels, planes, use_plane, outlier: float, replace_a
 
 @njit(cache=True, parallel=True)
 def local_consistency(disp, left, right, min_disp: int, ndisp: int, radius: int,
-                      gamma_s: float, gamma_c: float, gamma_t: float, fill_invalid: bool, todo):
+                      gamma_s: float, gamma_c: float, gamma_t: float, fill_invalid: bool, todo,
+                      min_change: int = 0):
     """Locally consistent disparity: every pixel takes the hypothesis its neighbours support most.
 
     Each valid neighbour g of f within ``radius`` votes for its disparity d_g with plausibility
@@ -320,8 +321,9 @@ def local_consistency(disp, left, right, min_disp: int, ndisp: int, radius: int,
     points both would match in the right image under d_g (Mattoccia 2009, "A locally global
     approach to stereo correspondence", eq. 2–4). Votes are binned per integer disparity; f
     takes the weighted mean disparity of the winning bin. Only pixels where ``todo`` (H, W)
-    bool is set are voted on; the others keep their disparity with confidence 1. Returns
-    (disparity, confidence = winning share of the vote mass).
+    bool is set are voted on; the others keep their disparity with confidence 1. A valid pixel
+    keeps its own value when the winning bin is less than ``min_change`` bins from its own.
+    Returns (disparity, confidence = winning share of the vote mass).
     """
     h, w, c = left.shape
     out = np.full((h, w), INF, np.float32)
@@ -388,9 +390,143 @@ def local_consistency(disp, left, right, min_disp: int, ndisp: int, radius: int,
                 if best < 0 or mass[k] > mass[best] or (mass[k] == mass[best] and k < best):
                     best = k
             if total > 0:
-                out[y, x] = np.float32(sumd[best] / mass[best])
+                own = disp[y, x]
+                if not np.isfinite(own) or abs(best - int(np.floor(own - min_disp + 0.5))) >= min_change:
+                    out[y, x] = np.float32(sumd[best] / mass[best])
+                else:
+                    out[y, x] = own
                 conf[y, x] = np.float32(mass[best] / total)
             for j in range(n_touched):
                 mass[touched[j]] = 0.0
                 sumd[touched[j]] = 0.0
     return out, conf
+
+
+@njit(cache=True, parallel=True)
+def quarter_levels(image: np.ndarray) -> np.ndarray:
+    """(H, W, C) float32 in [0, 255] -> int32 in quarter grey levels, round(4·v): integer
+    colour differences index the vote tables directly."""
+    h, w, c = image.shape
+    out = np.empty((h, w, c), np.int32)
+    for y in prange(h):
+        for x in range(w):
+            for ch in range(c):
+                out[y, x, ch] = int(4.0 * image[y, x, ch] + 0.5)
+    return out
+
+
+@njit(cache=True, parallel=True)
+def disparity_bins(disp: np.ndarray, min_disp: int, ndisp: int) -> np.ndarray:
+    """(H, W) int32 1-px bins ``round(d) − min_disp``; −1 for invalid (+inf) disparities and
+    those outside ``[min_disp, min_disp + ndisp)``."""
+    h, w = disp.shape
+    bins = np.empty((h, w), np.int32)
+    for y in prange(h):
+        for x in range(w):
+            v = disp[y, x] - min_disp + 0.5  # +inf and NaN fail both tests below
+            bins[y, x] = int(v) if (v >= 0.0 and v < ndisp) else -1
+    return bins
+
+
+@njit(cache=True, inline="always")
+def _vote_segment(disp, bins, left4, right4, y: int, x: int, sy: int, sx: int, t0: int, t1: int, radius: int,
+                  min_disp: int, spatial, colour_w, match_w, outside_w, mass, sumd, three: bool):
+    """Add the votes of the segment ``t0 ≤ t ≤ t1`` of (y, x) into ``mass``/``sumd``; returns
+    the smallest and largest bin voted for. ``three``: 3 channels, written out with the
+    centre's colour in registers (the histogram stores would otherwise make LLVM reload it
+    at every vote); else any channel count."""
+    h, w, c = left4.shape
+    own = bins[y, x]
+    lo = own
+    hi = own
+    c0 = left4[y, x, 0]
+    c1 = left4[y, x, 1 % c]
+    c2 = left4[y, x, 2 % c]
+    for t in range(t0, t1 + 1):
+        gy = y + t * sy
+        gx = x + t * sx
+        k = bins[gy, gx]
+        if k < 0:
+            continue
+        lo = min(lo, k)
+        hi = max(hi, k)
+        if three:
+            dc = abs(left4[gy, gx, 0] - c0) + abs(left4[gy, gx, 1] - c1) + abs(left4[gy, gx, 2] - c2)
+        else:
+            dc = 0
+            for ch in range(c):
+                dc += abs(left4[gy, gx, ch] - left4[y, x, ch])
+        wgt = spatial[t + radius] * colour_w[dc]
+        kd = k + min_disp
+        xf = x - kd
+        xg = gx - kd
+        if 0 <= xf < w and 0 <= xg < w:
+            if three:
+                dt = (abs(right4[y, xf, 0] - right4[gy, xg, 0]) + abs(right4[y, xf, 1] - right4[gy, xg, 1])
+                      + abs(right4[y, xf, 2] - right4[gy, xg, 2]))
+            else:
+                dt = 0
+                for ch in range(c):
+                    dt += abs(right4[y, xf, ch] - right4[gy, xg, ch])
+            wgt *= match_w[dt]
+        else:
+            wgt *= outside_w
+        # A plain scatter: faster here than summing runs of one bin in registers.
+        mass[k] += wgt
+        sumd[k] += wgt * disp[gy, gx]
+    return lo, hi
+
+
+@njit(cache=True, parallel=True)
+def local_consistency_line(disp, bins, centres, left4, right4, min_disp: int, ndisp: int, radius: int,
+                           spatial, colour_w, match_w, outside_w: float, min_change: int, vertical: bool):
+    """Mattoccia's locally consistent vote along one line per pixel: the row segment
+    ``|x' − x| ≤ radius`` (or, ``vertical``, the column segment) instead of the square window.
+
+    ``bins`` (H, W) int32 from :func:`disparity_bins`; ``centres`` (N,) int64 flat indices
+    ``y·W + x`` of the pixels voted on (valid ones); ``left4``/``right4`` (H, W, C) int32 from
+    :func:`quarter_levels`. Every valid g on the segment of f votes for its bin with
+    ``spatial[|g − f|] · colour_w[ΔL(f, g)] · match_w[ΔR(f − d_g, g − d_g)]`` (``outside_w``
+    when either right point is outside the image): the plausibilities of
+    :func:`local_consistency`, tabulated over quarter grey levels. f takes the weighted mean
+    disparity of the winning bin (most mass, smaller bin on ties) when that bin is at least
+    ``min_change`` bins from its own, and keeps its value otherwise. Returns ``(disparity,
+    share)``: share = the winning bin's part of the vote mass at the centres, 1 elsewhere.
+    """
+    h, w, c = left4.shape
+    out = disp.copy()
+    share = np.ones((h, w), np.float32)
+    n_centres = centres.shape[0]
+    n_chunks = min(n_centres, 64)  # centres cluster along edges: many small chunks balance the threads
+    sy = 1 if vertical else 0
+    sx = 1 - sy
+    for chunk in prange(n_chunks):
+        mass = np.zeros(ndisp, np.float32)
+        sumd = np.zeros(ndisp, np.float32)
+        for i in range(chunk * n_centres // n_chunks, (chunk + 1) * n_centres // n_chunks):
+            y = centres[i] // w
+            x = centres[i] - y * w
+            own = bins[y, x]
+            pos = y if vertical else x
+            t0 = max(-radius, -pos)
+            t1 = min(radius, (h if vertical else w) - 1 - pos)
+            if c == 3:
+                lo, hi = _vote_segment(disp, bins, left4, right4, y, x, sy, sx, t0, t1, radius, min_disp, spatial,
+                                       colour_w, match_w, outside_w, mass, sumd, True)
+            else:
+                lo, hi = _vote_segment(disp, bins, left4, right4, y, x, sy, sx, t0, t1, radius, min_disp, spatial,
+                                       colour_w, match_w, outside_w, mass, sumd, False)
+            best = lo
+            total = np.float32(0.0)
+            for k in range(lo, hi + 1):
+                total += mass[k]
+                if mass[k] > mass[best]:
+                    best = k
+            if total > 0:
+                share[y, x] = mass[best] / total
+                if abs(best - own) >= min_change:
+                    out[y, x] = sumd[best] / mass[best]
+            for k in range(lo, hi + 1):
+                mass[k] = 0.0
+                sumd[k] = 0.0
+    return out, share
