@@ -257,8 +257,8 @@ def line_vote_reference(disp, left, right, min_disp, ndisp, radius, gamma_s, gam
     return out
 
 
-@pytest.mark.parametrize("min_change,channels", [(0, 3), (2, 3), (2, 1)])
-def test_separable_local_consistency_matches_reference(min_change, channels):
+@pytest.mark.parametrize("min_change,channels,right", [(0, 3, True), (2, 3, True), (2, 1, True), (0, 3, False)])
+def test_separable_local_consistency_matches_reference(min_change, channels, right):
     # Rows, then columns of the result, on noisy random maps with holes, two surfaces and a
     # range that starts below zero; colour (or grey) images with 8-bit values.
     from stereocli.match.refine_segment import LocalConsistencyParams, local_consistency
@@ -266,16 +266,19 @@ def test_separable_local_consistency_matches_reference(min_change, channels):
     rng = np.random.default_rng(5)
     h, w = 17, 23
     left = rng.integers(0, 256, (h, w, channels)).astype(np.float32)
-    right = rng.integers(0, 256, (h, w, channels)).astype(np.float32)
+    right_image = rng.integers(0, 256, (h, w, channels)).astype(np.float32)
     disp = (rng.uniform(-1, 2, (h, w)) + np.where(np.arange(w) > 11, 6.0, 0.0)).astype(np.float32)
     disp[rng.random((h, w)) < 0.1] = np.inf
-    p = LocalConsistencyParams(separable=True, radius=4, gamma_s=4.0, band=2, min_change=min_change)
-    state = MatchState(left if channels == 3 else left[..., 0], right if channels == 3 else right[..., 0], -2, 14)
+    p = LocalConsistencyParams(separable=True, radius=4, gamma_s=4.0, band=2, min_change=min_change, right=right)
+    state = MatchState(left if channels == 3 else left[..., 0], right_image if channels == 3 else right_image[..., 0],
+                       -2, 14)
     state.disparity = disp.copy()
     local_consistency(state, p)
     want = disp.copy()
     for vertical in (False, True):
-        want = line_vote_reference(want, left, right, -2, 14, 4, 4.0, 12.0, 12.0, min_change, 2, vertical)
+        # No right-image term = every match weight exp(−Δ/∞) = 1.
+        want = line_vote_reference(want, left, right_image, -2, 14, 4, 4.0, 12.0, 12.0 if right else np.inf,
+                                   min_change, 2, vertical)
     np.testing.assert_array_equal(np.isfinite(state.disparity), np.isfinite(disp))
     fin = np.isfinite(want)
     np.testing.assert_allclose(state.disparity[fin], want[fin], rtol=0, atol=1e-4)
@@ -347,3 +350,20 @@ def test_local_consistency_separable_rejects_fill_invalid_and_multiplies_confide
     # is multiplied by the winning share (< 1: both surfaces vote).
     assert (state.confidence[:, :8] == 0.5).all()
     assert (state.confidence[:, 14] < 0.5).all()
+
+
+def test_square_local_consistency_without_right_term_matches_reference():
+    from stereocli.match.refine_segment import LocalConsistencyParams, local_consistency
+
+    rng = np.random.default_rng(8)
+    h, w = 14, 19
+    left = rng.integers(0, 256, (h, w, 3)).astype(np.float32)
+    right = rng.integers(0, 256, (h, w, 3)).astype(np.float32)
+    disp = (rng.uniform(2, 4, (h, w)) + np.where(np.arange(w) > 9, 5.0, 0.0)).astype(np.float32)
+    state = MatchState(left, right, 0, 12)
+    state.disparity = disp.copy()
+    local_consistency(state, LocalConsistencyParams(radius=3, gamma_s=3.0, right=False))
+    want = local_consistency_reference(disp, left, right, 0, 12, 3, 3.0, 12.0, np.inf)
+    np.testing.assert_allclose(state.disparity, want, rtol=0, atol=1e-4)
+    with_right = local_consistency_reference(disp, left, right, 0, 12, 3, 3.0, 12.0, 12.0)
+    assert not np.allclose(want, with_right, atol=1e-3)  # the right term does matter on these maps

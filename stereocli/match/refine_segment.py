@@ -36,6 +36,8 @@ class LocalConsistencyParams:
     separable: bool = param(False, "vote along the row segment, then along the column segment "
                             "(2·(2·radius + 1) votes per pixel instead of (2·radius + 1)²)")
     color: bool = param(True, "colour terms on the colour images; false: on the grey images")
+    right: bool = param(True, "the right-image term (γt); false: distance and left-image colour only, "
+                        "about a third less work per vote with separable")
 
     def __post_init__(self):
         if self.separable and self.fill_invalid:
@@ -74,13 +76,16 @@ def local_consistency(state: MatchState, p: LocalConsistencyParams) -> None:
             bins = ks.disparity_bins(disp, state.min_disp, state.ndisp)
             centres = np.flatnonzero(_line_centres(bins, todo, p.band or p.radius, p.min_change, vertical))
             disp, share = ks.local_consistency_line(disp, bins, centres, left4, right4, state.min_disp,
-                                                    state.ndisp, p.radius, *tables, int(p.min_change), vertical)
+                                                    state.ndisp, p.radius, *tables, int(p.min_change), vertical,
+                                                    bool(p.right))
             conf = share if conf is None else conf * share
         conf[~np.isfinite(disp)] = 0.0
     else:
+        # Without the right-image term every match weight is exp(−Δ/∞) = 1 exactly.
+        gamma_t = float(p.gamma_t) if p.right else np.inf
         disp, conf = ks.local_consistency(
             disp, left, right, state.min_disp, state.ndisp, p.radius, float(p.gamma_s), float(p.gamma_c),
-            float(p.gamma_t), bool(p.fill_invalid), todo, int(p.min_change),
+            gamma_t, bool(p.fill_invalid), todo, int(p.min_change),
         )
     state.disparity = disp
     state.confidence = conf if state.confidence is None else state.confidence * conf

@@ -430,11 +430,12 @@ def disparity_bins(disp: np.ndarray, min_disp: int, ndisp: int) -> np.ndarray:
 
 @njit(cache=True, inline="always")
 def _vote_segment(disp, bins, left4, right4, y: int, x: int, sy: int, sx: int, t0: int, t1: int, radius: int,
-                  min_disp: int, spatial, colour_w, match_w, outside_w, mass, sumd, three: bool):
+                  min_disp: int, spatial, colour_w, match_w, outside_w, mass, sumd, three: bool, use_right: bool):
     """Add the votes of the segment ``t0 ≤ t ≤ t1`` of (y, x) into ``mass``/``sumd``; returns
     the smallest and largest bin voted for. ``three``: 3 channels, written out with the
     centre's colour in registers (the histogram stores would otherwise make LLVM reload it
-    at every vote); else any channel count."""
+    at every vote); else any channel count. ``use_right`` false leaves out the right-image
+    term (as if every match weight were 1)."""
     h, w, c = left4.shape
     own = bins[y, x]
     lo = own
@@ -460,7 +461,9 @@ def _vote_segment(disp, bins, left4, right4, y: int, x: int, sy: int, sx: int, t
         kd = k + min_disp
         xf = x - kd
         xg = gx - kd
-        if 0 <= xf < w and 0 <= xg < w:
+        if not use_right:
+            pass  # distance and left colour only
+        elif 0 <= xf < w and 0 <= xg < w:
             if three:
                 dt = (abs(right4[y, xf, 0] - right4[gy, xg, 0]) + abs(right4[y, xf, 1] - right4[gy, xg, 1])
                       + abs(right4[y, xf, 2] - right4[gy, xg, 2]))
@@ -479,7 +482,8 @@ def _vote_segment(disp, bins, left4, right4, y: int, x: int, sy: int, sx: int, t
 
 @njit(cache=True, parallel=True)
 def local_consistency_line(disp, bins, centres, left4, right4, min_disp: int, ndisp: int, radius: int,
-                           spatial, colour_w, match_w, outside_w: float, min_change: int, vertical: bool):
+                           spatial, colour_w, match_w, outside_w: float, min_change: int, vertical: bool,
+                           use_right: bool = True):
     """Mattoccia's locally consistent vote along one line per pixel: the row segment
     ``|x' − x| ≤ radius`` (or, ``vertical``, the column segment) instead of the square window.
 
@@ -490,8 +494,9 @@ def local_consistency_line(disp, bins, centres, left4, right4, min_disp: int, nd
     when either right point is outside the image): the plausibilities of
     :func:`local_consistency`, tabulated over quarter grey levels. f takes the weighted mean
     disparity of the winning bin (most mass, smaller bin on ties) when that bin is at least
-    ``min_change`` bins from its own, and keeps its value otherwise. Returns ``(disparity,
-    share)``: share = the winning bin's part of the vote mass at the centres, 1 elsewhere.
+    ``min_change`` bins from its own, and keeps its value otherwise. ``use_right`` false
+    drops the right-image term. Returns ``(disparity, share)``: share = the winning bin's part
+    of the vote mass at the centres, 1 elsewhere.
     """
     h, w, c = left4.shape
     out = disp.copy()
@@ -512,10 +517,10 @@ def local_consistency_line(disp, bins, centres, left4, right4, min_disp: int, nd
             t1 = min(radius, (h if vertical else w) - 1 - pos)
             if c == 3:
                 lo, hi = _vote_segment(disp, bins, left4, right4, y, x, sy, sx, t0, t1, radius, min_disp, spatial,
-                                       colour_w, match_w, outside_w, mass, sumd, True)
+                                       colour_w, match_w, outside_w, mass, sumd, True, use_right)
             else:
                 lo, hi = _vote_segment(disp, bins, left4, right4, y, x, sy, sx, t0, t1, radius, min_disp, spatial,
-                                       colour_w, match_w, outside_w, mass, sumd, False)
+                                       colour_w, match_w, outside_w, mass, sumd, False, use_right)
             best = lo
             total = np.float32(0.0)
             for k in range(lo, hi + 1):
