@@ -69,13 +69,15 @@ def local_consistency(state: MatchState, p: LocalConsistencyParams) -> None:
     left = _channels(state.left if p.color else state.gray("left"))
     right = _channels(state.right if p.color else state.gray("right"))
     if p.separable:
-        left4, right4 = ks.quarter_levels(left), ks.quarter_levels(right)
+        left_packed = ks.packed_quarter_levels(left)
+        right_packed = ks.packed_quarter_levels(right) if p.right else np.zeros((0, 0), np.int64)
         tables = _vote_tables(left.shape[2], p)
+        todo_or_all = todo if p.min_spread > 0 else np.zeros((0, 0), np.bool_)
         conf = None
         for vertical in (False, True):
             bins = ks.disparity_bins(disp, state.min_disp, state.ndisp)
-            centres = np.flatnonzero(_line_centres(bins, todo, p.band or p.radius, p.min_change, vertical))
-            disp, share = ks.local_consistency_line(disp, bins, centres, left4, right4, state.min_disp,
+            centres = ks.line_centres(bins, todo_or_all, p.band or p.radius, int(p.min_change), vertical)
+            disp, share = ks.local_consistency_line(disp, bins, centres, left_packed, right_packed, state.min_disp,
                                                     state.ndisp, p.radius, *tables, int(p.min_change), vertical,
                                                     bool(p.right))
             conf = share if conf is None else conf * share
@@ -99,19 +101,6 @@ def _vote_tables(channels: int, p: LocalConsistencyParams):
     steps = np.arange(1020 * channels + 1) * (0.25 / channels)  # mean channel difference, grey levels
     return (spatial, np.exp(-steps / p.gamma_c).astype(np.float32), np.exp(-steps / p.gamma_t).astype(np.float32),
             float(np.exp(-255.0 / p.gamma_t)))
-
-
-def _line_centres(bins: np.ndarray, todo: np.ndarray, band: int, min_change: int, vertical: bool) -> np.ndarray:
-    """(H, W) bool: the pixels a line vote can move: valid, in ``todo`` and (``min_change`` > 0)
-    within ``band`` px along the line of a bin at least ``min_change`` from their own."""
-    valid = (bins >= 0) & todo
-    if min_change <= 0:
-        return valid
-    b = bins.astype(np.float32)
-    kernel = np.ones((2 * band + 1, 1) if vertical else (1, 2 * band + 1), np.uint8)
-    high = cv2.dilate(np.where(bins >= 0, b, -np.inf).astype(np.float32), kernel)
-    low = cv2.erode(np.where(bins >= 0, b, np.inf).astype(np.float32), kernel)
-    return valid & (((high - b) >= min_change) | ((b - low) >= min_change))
 
 
 def _discontinuity_windows(disp: np.ndarray, radius: int, min_spread: float, fill_invalid: bool) -> np.ndarray:

@@ -402,17 +402,42 @@ def local_consistency(disp, left, right, min_disp: int, ndisp: int, radius: int,
     return out, conf
 
 
+#: Bits per channel of a packed colour (:func:`packed_quarter_levels`): quarter grey levels
+#: of 8-bit-range images need 10.
+CHANNEL_BITS = 16
+CHANNEL_MASK = (1 << CHANNEL_BITS) - 1
+
+
 @njit(cache=True, parallel=True)
-def quarter_levels(image: np.ndarray) -> np.ndarray:
-    """(H, W, C) float32 in [0, 255] -> int32 in quarter grey levels, round(4·v): integer
-    colour differences index the vote tables directly."""
+def packed_quarter_levels(image: np.ndarray) -> np.ndarray:
+    """(H, W, C) float32 in [0, 255], C ≤ 3 -> (H, W) int64: each channel's quarter grey level
+    round(4·v) in its own 16-bit field (channel ch at bit 16·ch; absent channels are 0). One
+    load gives a pixel's colour, and integer colour differences index the vote tables."""
     h, w, c = image.shape
-    out = np.empty((h, w, c), np.int32)
+    out = np.empty((h, w), np.int64)
     for y in prange(h):
         for x in range(w):
+            v = 0
             for ch in range(c):
-                out[y, x, ch] = int(4.0 * image[y, x, ch] + 0.5)
+                q = int(4.0 * min(max(image[y, x, ch], np.float32(0.0)), np.float32(255.0)) + 0.5)
+                v |= q << (CHANNEL_BITS * ch)
+            out[y, x] = v
     return out
+
+
+@njit(cache=True, inline="always")
+def _packed_distance_to(a, f0, f1, f2) -> int:
+    # The same against a colour already split into its fields f0, f1, f2 (held in registers).
+    return (abs((a & CHANNEL_MASK) - f0) + abs(((a >> CHANNEL_BITS) & CHANNEL_MASK) - f1)
+            + abs((a >> (2 * CHANNEL_BITS)) - f2))
+
+
+@njit(cache=True, inline="always")
+def _packed_distance(a, b) -> int:
+    # Sum of absolute channel differences of two packed colours (three fields; unused ones are 0).
+    return (abs((a & CHANNEL_MASK) - (b & CHANNEL_MASK))
+            + abs(((a >> CHANNEL_BITS) & CHANNEL_MASK) - ((b >> CHANNEL_BITS) & CHANNEL_MASK))
+            + abs((a >> (2 * CHANNEL_BITS)) - (b >> (2 * CHANNEL_BITS))))
 
 
 @njit(cache=True, parallel=True)
@@ -428,21 +453,75 @@ def disparity_bins(disp: np.ndarray, min_disp: int, ndisp: int) -> np.ndarray:
     return bins
 
 
+@njit(cache=True, parallel=True)
+def line_centres(bins: np.ndarray, todo: np.ndarray, band: int, min_change: int, vertical: bool) -> np.ndarray:
+    """(N,) int64 flat indices ``y·W + x`` (ascending) of the pixels a line vote can move:
+    valid bin, ``todo`` (an empty array: every pixel) and, with ``min_change`` > 0, a valid
+    bin at least ``min_change`` from their own within ``band`` px along the row (or,
+    ``vertical``, the column)."""
+    h, w = bins.shape
+    use_todo = todo.shape[0] > 0
+    none = np.int32(2 ** 30)  # stands for an invalid bin in the running minimum
+    keep = np.zeros((h, w), np.bool_)
+    counts = np.zeros(h, np.int64)
+    for y in prange(h):
+        # Largest and smallest valid bin within band along the line, for the whole row at
+        # once (plain loops over x that vectorise, instead of a search per pixel).
+        high = np.full(w, -1, np.int32)
+        low = np.full(w, none, np.int32)
+        if min_change > 0:
+            for t in range(-band, band + 1):
+                if vertical:
+                    if not 0 <= y + t < h:
+                        continue
+                    src = bins[y + t]
+                    for x in range(w):
+                        v = src[x]
+                        high[x] = max(high[x], v)
+                        low[x] = min(low[x], v if v >= 0 else none)
+                else:
+                    src = bins[y]
+                    # Unsigned indices: no negative-index fix-up, so the loop vectorises.
+                    for x in range(np.uint64(max(0, -t)), np.uint64(min(w, w - t))):
+                        v = src[x + np.uint64(t + w) - np.uint64(w)]
+                        high[x] = max(high[x], v)
+                        low[x] = min(low[x], v if v >= 0 else none)
+        n = 0
+        for x in range(w):
+            own = bins[y, x]
+            ok = own >= 0 and (not use_todo or todo[y, x])
+            if ok and min_change > 0:
+                ok = high[x] - own >= min_change or own - low[x] >= min_change
+            keep[y, x] = ok
+            n += ok
+        counts[y] = n
+    starts = np.zeros(h + 1, np.int64)
+    for y in range(h):
+        starts[y + 1] = starts[y] + counts[y]
+    out = np.empty(starts[h], np.int64)
+    for y in prange(h):
+        i = starts[y]
+        for x in range(w):
+            if keep[y, x]:
+                out[i] = y * w + x
+                i += 1
+    return out
+
+
 @njit(cache=True, inline="always")
-def _vote_segment(disp, bins, left4, right4, y: int, x: int, sy: int, sx: int, t0: int, t1: int, radius: int,
-                  min_disp: int, spatial, colour_w, match_w, outside_w, mass, sumd, three: bool, use_right: bool):
-    """Add the votes of the segment ``t0 ≤ t ≤ t1`` of (y, x) into ``mass``/``sumd``; returns
-    the smallest and largest bin voted for. ``three``: 3 channels, written out with the
-    centre's colour in registers (the histogram stores would otherwise make LLVM reload it
-    at every vote); else any channel count. ``use_right`` false leaves out the right-image
-    term (as if every match weight were 1)."""
-    h, w, c = left4.shape
+def _line_votes(disp, bins, left_packed, right_packed, y: int, x: int, sy: int, sx: int, t0: int, t1: int,
+                radius: int, min_disp: int, spatial, colour_w, match_w, outside_w, hist, use_right: bool):
+    """Add the votes of the segment ``t0 ≤ t ≤ t1`` of (y, x) into ``hist`` (mass of bin k at
+    2k, weighted disparity sum at 2k + 1); returns the smallest and largest bin voted for.
+    Called with a literal ``use_right`` so that each caller compiles one straight loop."""
+    w = bins.shape[1]
     own = bins[y, x]
+    colour = left_packed[y, x]
+    f0 = colour & CHANNEL_MASK  # the centre's colour fields, in registers for the whole segment
+    f1 = (colour >> CHANNEL_BITS) & CHANNEL_MASK
+    f2 = colour >> (2 * CHANNEL_BITS)
     lo = own
     hi = own
-    c0 = left4[y, x, 0]
-    c1 = left4[y, x, 1 % c]
-    c2 = left4[y, x, 2 % c]
     for t in range(t0, t1 + 1):
         gy = y + t * sy
         gx = x + t * sx
@@ -451,63 +530,47 @@ def _vote_segment(disp, bins, left4, right4, y: int, x: int, sy: int, sx: int, t
             continue
         lo = min(lo, k)
         hi = max(hi, k)
-        if three:
-            dc = abs(left4[gy, gx, 0] - c0) + abs(left4[gy, gx, 1] - c1) + abs(left4[gy, gx, 2] - c2)
-        else:
-            dc = 0
-            for ch in range(c):
-                dc += abs(left4[gy, gx, ch] - left4[y, x, ch])
-        wgt = spatial[t + radius] * colour_w[dc]
-        kd = k + min_disp
-        xf = x - kd
-        xg = gx - kd
-        if not use_right:
-            pass  # distance and left colour only
-        elif 0 <= xf < w and 0 <= xg < w:
-            if three:
-                dt = (abs(right4[y, xf, 0] - right4[gy, xg, 0]) + abs(right4[y, xf, 1] - right4[gy, xg, 1])
-                      + abs(right4[y, xf, 2] - right4[gy, xg, 2]))
+        wgt = spatial[t + radius] * colour_w[_packed_distance_to(left_packed[gy, gx], f0, f1, f2)]
+        if use_right:
+            kd = k + min_disp
+            xf = x - kd
+            xg = gx - kd
+            if 0 <= xf < w and 0 <= xg < w:
+                wgt *= match_w[_packed_distance(right_packed[y, xf], right_packed[gy, xg])]
             else:
-                dt = 0
-                for ch in range(c):
-                    dt += abs(right4[y, xf, ch] - right4[gy, xg, ch])
-            wgt *= match_w[dt]
-        else:
-            wgt *= outside_w
-        # A plain scatter: faster here than summing runs of one bin in registers.
-        mass[k] += wgt
-        sumd[k] += wgt * disp[gy, gx]
+                wgt *= outside_w
+        hist[2 * k] += wgt
+        hist[2 * k + 1] += wgt * disp[gy, gx]
     return lo, hi
 
 
 @njit(cache=True, parallel=True)
-def local_consistency_line(disp, bins, centres, left4, right4, min_disp: int, ndisp: int, radius: int,
+def local_consistency_line(disp, bins, centres, left_packed, right_packed, min_disp: int, ndisp: int, radius: int,
                            spatial, colour_w, match_w, outside_w: float, min_change: int, vertical: bool,
                            use_right: bool = True):
     """Mattoccia's locally consistent vote along one line per pixel: the row segment
     ``|x' − x| ≤ radius`` (or, ``vertical``, the column segment) instead of the square window.
 
-    ``bins`` (H, W) int32 from :func:`disparity_bins`; ``centres`` (N,) int64 flat indices
-    ``y·W + x`` of the pixels voted on (valid ones); ``left4``/``right4`` (H, W, C) int32 from
-    :func:`quarter_levels`. Every valid g on the segment of f votes for its bin with
-    ``spatial[|g − f|] · colour_w[ΔL(f, g)] · match_w[ΔR(f − d_g, g − d_g)]`` (``outside_w``
-    when either right point is outside the image): the plausibilities of
-    :func:`local_consistency`, tabulated over quarter grey levels. f takes the weighted mean
-    disparity of the winning bin (most mass, smaller bin on ties) when that bin is at least
-    ``min_change`` bins from its own, and keeps its value otherwise. ``use_right`` false
-    drops the right-image term. Returns ``(disparity, share)``: share = the winning bin's part
-    of the vote mass at the centres, 1 elsewhere.
+    ``bins`` (H, W) int32 from :func:`disparity_bins`; ``centres`` (N,) int64 from
+    :func:`line_centres`; ``left_packed``/``right_packed`` (H, W) int64 from
+    :func:`packed_quarter_levels`. Every valid g on the segment of f votes for its bin with
+    ``spatial[t + radius] · colour_w[ΔL(f, g)] · match_w[ΔR(f − d_g, g − d_g)]`` (t = g − f;
+    ``outside_w`` when either right point is outside the image; no right-image factor when
+    ``use_right`` is false): the plausibilities of :func:`local_consistency`, tabulated over
+    summed quarter-level channel differences. f takes the weighted mean disparity of the
+    winning bin (most mass, smaller bin on ties) when that bin is at least ``min_change``
+    bins from its own, and keeps its value otherwise. Returns ``(disparity, share)``: share =
+    the winning bin's part of the vote mass at the centres, 1 elsewhere.
     """
-    h, w, c = left4.shape
+    h, w = bins.shape
     out = disp.copy()
     share = np.ones((h, w), np.float32)
     n_centres = centres.shape[0]
     n_chunks = min(n_centres, 64)  # centres cluster along edges: many small chunks balance the threads
-    sy = 1 if vertical else 0
-    sx = 1 - sy
     for chunk in prange(n_chunks):
-        mass = np.zeros(ndisp, np.float32)
-        sumd = np.zeros(ndisp, np.float32)
+        # Mass and weighted disparity sum of bin k side by side (hist[2k], hist[2k + 1]): one
+        # cache line per bin, and a little faster than two arrays.
+        hist = np.zeros(2 * ndisp, np.float32)
         for i in range(chunk * n_centres // n_chunks, (chunk + 1) * n_centres // n_chunks):
             y = centres[i] // w
             x = centres[i] - y * w
@@ -515,23 +578,29 @@ def local_consistency_line(disp, bins, centres, left4, right4, min_disp: int, nd
             pos = y if vertical else x
             t0 = max(-radius, -pos)
             t1 = min(radius, (h if vertical else w) - 1 - pos)
-            if c == 3:
-                lo, hi = _vote_segment(disp, bins, left4, right4, y, x, sy, sx, t0, t1, radius, min_disp, spatial,
-                                       colour_w, match_w, outside_w, mass, sumd, True, use_right)
+            # Literal directions and right-term switch: each branch compiles one straight loop.
+            if vertical and use_right:
+                lo, hi = _line_votes(disp, bins, left_packed, right_packed, y, x, 1, 0, t0, t1, radius, min_disp,
+                                     spatial, colour_w, match_w, outside_w, hist, True)
+            elif vertical:
+                lo, hi = _line_votes(disp, bins, left_packed, right_packed, y, x, 1, 0, t0, t1, radius, min_disp,
+                                     spatial, colour_w, match_w, outside_w, hist, False)
+            elif use_right:
+                lo, hi = _line_votes(disp, bins, left_packed, right_packed, y, x, 0, 1, t0, t1, radius, min_disp,
+                                     spatial, colour_w, match_w, outside_w, hist, True)
             else:
-                lo, hi = _vote_segment(disp, bins, left4, right4, y, x, sy, sx, t0, t1, radius, min_disp, spatial,
-                                       colour_w, match_w, outside_w, mass, sumd, False, use_right)
+                lo, hi = _line_votes(disp, bins, left_packed, right_packed, y, x, 0, 1, t0, t1, radius, min_disp,
+                                     spatial, colour_w, match_w, outside_w, hist, False)
             best = lo
             total = np.float32(0.0)
             for k in range(lo, hi + 1):
-                total += mass[k]
-                if mass[k] > mass[best]:
+                total += hist[2 * k]
+                if hist[2 * k] > hist[2 * best]:
                     best = k
             if total > 0:
-                share[y, x] = mass[best] / total
+                share[y, x] = hist[2 * best] / total
                 if abs(best - own) >= min_change:
-                    out[y, x] = sumd[best] / mass[best]
-            for k in range(lo, hi + 1):
-                mass[k] = 0.0
-                sumd[k] = 0.0
+                    out[y, x] = hist[2 * best + 1] / hist[2 * best]
+            for k in range(2 * lo, 2 * hi + 2):
+                hist[k] = 0.0
     return out, share
