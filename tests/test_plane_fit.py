@@ -367,3 +367,30 @@ def test_square_local_consistency_without_right_term_matches_reference():
     np.testing.assert_allclose(state.disparity, want, rtol=0, atol=1e-4)
     with_right = local_consistency_reference(disp, left, right, 0, 12, 3, 3.0, 12.0, 12.0)
     assert not np.allclose(want, with_right, atol=1e-3)  # the right term does matter on these maps
+
+
+def test_separable_local_consistency_is_deterministic_across_thread_counts():
+    import numba
+
+    from stereocli.match.refine_segment import LocalConsistencyParams, local_consistency
+
+    rng = np.random.default_rng(4)
+    h, w = 60, 90
+    left = rng.integers(0, 256, (h, w, 3)).astype(np.float32)
+    right = rng.integers(0, 256, (h, w, 3)).astype(np.float32)
+    disp = (rng.uniform(0, 3, (h, w)) + np.where((np.arange(w) // 15) % 2 == 1, 8.0, 0.0)).astype(np.float32)
+    p = LocalConsistencyParams(separable=True, radius=8, gamma_s=8.0, band=3, min_change=2)
+    results = []
+    old = numba.get_num_threads()
+    try:
+        for threads in (1, min(2, numba.config.NUMBA_NUM_THREADS)):
+            numba.set_num_threads(threads)
+            state = MatchState(left, right, 0, 16)
+            state.disparity = disp.copy()
+            local_consistency(state, p)
+            results.append((state.disparity, state.confidence))
+    finally:
+        numba.set_num_threads(old)
+    np.testing.assert_array_equal(results[0][0], results[1][0])
+    np.testing.assert_array_equal(results[0][1], results[1][1])
+    assert not np.array_equal(results[0][0], disp)
