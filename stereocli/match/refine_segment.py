@@ -93,6 +93,48 @@ def local_consistency(state: MatchState, p: LocalConsistencyParams) -> None:
     state.confidence = conf if state.confidence is None else state.confidence * conf
 
 
+@dataclass(frozen=True)
+class GeodesicVoteParams:
+    gamma_s: float = param(100.0, "distance falloff: each step along the line passes exp(−1/γs) of the support", unit="px", low=0.1, high=1e6)
+    gamma_c: float = param(25.0, "colour falloff between neighbouring pixels (mean channel difference)", unit="grey levels", low=0.1, high=1000.0)
+    band: int = param(3, "vote only at pixels within this distance (along the line) of a step of at least min_change bins", unit="px", low=1, high=50)
+    min_change: int = param(2, "take the winning 1-px bin only when it is at least this many bins from the pixel's own (2 keeps sub-pixel values and moves only misplaced edges)", low=1, high=1000)
+    max_bins: int = param(3, "bins each running vote keeps (the strongest; a new bin replaces the weakest)", low=1, high=16)
+    color: bool = param(True, "colour differences on the colour image; false: on the grey image")
+
+
+@register("refinement", "geodesic_vote", GeodesicVoteParams)
+def geodesic_vote(state: MatchState, p: GeodesicVoteParams) -> None:
+    """Put depth edges back on colour edges: pixels beside a disparity step take the disparity
+    their colour-connected neighbours along the row, then the column, support most.
+
+    Each valid pixel votes for its 1-px bin; the vote reaches another pixel of the same row
+    (column) weakened by ``exp(−1/γs − ΔC/γc)`` for every neighbour pair in between (ΔC: the
+    pair's mean channel difference), so support flows through a surface's own colours and
+    dies at colour edges — foreground disparities that spilled over a colour edge (the census
+    window's fattening) are outvoted by the background they now sit in. Two running votes per
+    line (one from each end) make it O(1) per pixel whatever the reach, like Yang's recursive
+    bilateral filter. Only pixels within ``band`` px along the line of a step of
+    ``min_change`` bins or more are decided, and they only move to a bin at least
+    ``min_change`` away (the winning bin's weighted mean disparity), so sub-pixel values on
+    slanted surfaces stay. Place it at the end of the chain (after ``plane_smooth``); it
+    replaces ``region_voting`` in the default preset. Invalid pixels neither vote nor move.
+    """
+    disp = np.ascontiguousarray(state.disparity, dtype=np.float32)
+    left = _channels(state.left if p.color else state.gray("left"))
+    packed = ks.packed_quarter_levels(left)
+    steps = np.arange(1020 * left.shape[2] + 1) * (0.25 / left.shape[2])  # mean channel difference, grey levels
+    # Weight passed between neighbours (distance and colour), by their colour difference.
+    passed = np.exp(-1.0 / p.gamma_s - steps / p.gamma_c)
+    everywhere = np.zeros((0, 0), np.bool_)
+    for vertical in (False, True):
+        bins = ks.disparity_bins(disp, state.min_disp, state.ndisp)
+        centre = ks.line_centre_mask(bins, everywhere, p.band, p.min_change, vertical)
+        disp = ks.geodesic_vote_line(disp, bins, packed, centre, passed, int(p.min_change), int(p.max_bins),
+                                     vertical)
+    state.disparity = disp
+
+
 def _vote_tables(channels: int, p: LocalConsistencyParams):
     """Weights of the separable vote: spatial (2·radius + 1,) by offset, colour and match
     (float32, by summed channel difference in quarter grey levels) and the match weight of a

@@ -454,16 +454,14 @@ def disparity_bins(disp: np.ndarray, min_disp: int, ndisp: int) -> np.ndarray:
 
 
 @njit(cache=True, parallel=True)
-def line_centres(bins: np.ndarray, todo: np.ndarray, band: int, min_change: int, vertical: bool) -> np.ndarray:
-    """(N,) int64 flat indices ``y·W + x`` (ascending) of the pixels a line vote can move:
-    valid bin, ``todo`` (an empty array: every pixel) and, with ``min_change`` > 0, a valid
-    bin at least ``min_change`` from their own within ``band`` px along the row (or,
-    ``vertical``, the column)."""
+def line_centre_mask(bins: np.ndarray, todo: np.ndarray, band: int, min_change: int, vertical: bool) -> np.ndarray:
+    """(H, W) bool: the pixels a line vote can move: valid bin, ``todo`` (an empty array:
+    every pixel) and, with ``min_change`` > 0, a valid bin at least ``min_change`` from
+    their own within ``band`` px along the row (or, ``vertical``, the column)."""
     h, w = bins.shape
     use_todo = todo.shape[0] > 0
     none = np.int32(2 ** 30)  # stands for an invalid bin in the running minimum
     keep = np.zeros((h, w), np.bool_)
-    counts = np.zeros(h, np.int64)
     for y in prange(h):
         # Largest and smallest valid bin within band along the line, for the whole row at
         # once (plain loops over x that vectorise, instead of a search per pixel).
@@ -486,14 +484,25 @@ def line_centres(bins: np.ndarray, todo: np.ndarray, band: int, min_change: int,
                         v = src[x + np.uint64(t + w) - np.uint64(w)]
                         high[x] = max(high[x], v)
                         low[x] = min(low[x], v if v >= 0 else none)
-        n = 0
         for x in range(w):
             own = bins[y, x]
             ok = own >= 0 and (not use_todo or todo[y, x])
             if ok and min_change > 0:
                 ok = high[x] - own >= min_change or own - low[x] >= min_change
             keep[y, x] = ok
-            n += ok
+    return keep
+
+
+@njit(cache=True, parallel=True)
+def line_centres(bins: np.ndarray, todo: np.ndarray, band: int, min_change: int, vertical: bool) -> np.ndarray:
+    """(N,) int64 flat indices ``y·W + x`` (ascending) of :func:`line_centre_mask`'s pixels."""
+    keep = line_centre_mask(bins, todo, band, min_change, vertical)
+    h, w = keep.shape
+    counts = np.zeros(h, np.int64)
+    for y in prange(h):
+        n = 0
+        for x in range(w):
+            n += keep[y, x]
         counts[y] = n
     starts = np.zeros(h + 1, np.int64)
     for y in range(h):
@@ -604,3 +613,205 @@ def local_consistency_line(disp, bins, centres, left_packed, right_packed, min_d
             for k in range(2 * lo, 2 * hi + 2):
                 hist[k] = 0.0
     return out, share
+
+
+# --- geodesic vote (running votes along rows and columns) ---------------------------------
+
+#: A running vote's scale below which its stored masses are folded back (float64 keeps ~300
+#: decades; the product of the per-pixel decays can shrink fast across strong colour edges).
+_RESCALE_BELOW = 1e-30
+
+
+@njit(cache=True, inline="always")
+def _running_add(kk, mm, ss, n: int, last: int, k: int, m: float, s: float):
+    """Add scaled mass ``m`` and disparity sum ``s`` to bin ``k`` of a running vote of
+    ``n`` entries (at most ``kk.shape[0]``; a new bin then replaces the one with the least
+    mass). ``last`` is the entry used last (neighbours mostly share a bin). Returns
+    ``(n, entry used)``."""
+    if last < n and kk[last] == k:
+        mm[last] += m
+        ss[last] += s
+        return n, last
+    for j in range(n):
+        if kk[j] == k:
+            mm[j] += m
+            ss[j] += s
+            return n, j
+    if n < kk.shape[0]:
+        kk[n] = k
+        mm[n] = m
+        ss[n] = s
+        return n + 1, n
+    weakest = 0
+    for j in range(1, n):
+        if mm[j] < mm[weakest]:
+            weakest = j
+    kk[weakest] = k
+    mm[weakest] = m
+    ss[weakest] = s
+    return n, weakest
+
+
+@njit(cache=True, inline="always")
+def _decay_vote(mm, ss, n: int, scale: float, run_m: float, run_s: float, weight: float):
+    """One step along the line: every vote so far is multiplied by ``weight`` — the run's true
+    values directly, the kept bins through ``scale`` (folded back into them when it gets tiny).
+    Returns ``(scale, run_m, run_s)``."""
+    scale *= weight
+    run_m *= weight
+    run_s *= weight
+    if scale < _RESCALE_BELOW:
+        for j in range(n):
+            mm[j] *= scale
+            ss[j] *= scale
+        scale = 1.0
+    return scale, run_m, run_s
+
+
+@njit(cache=True, inline="always")
+def _add_vote(kk, mm, ss, n: int, last: int, scale: float, run_k: int, run_m: float, run_s: float, k: int, d: float):
+    """Add a pixel's vote (bin ``k``, disparity ``d``): to the run when it continues it, else
+    the run joins the kept bins and a new run starts (``k`` < 0: end the run only). Returns
+    ``(n, last, run_k, run_m, run_s)``."""
+    if k != run_k:
+        if run_k >= 0:
+            n, last = _running_add(kk, mm, ss, n, last, run_k, run_m / scale, run_s / scale)
+        run_k = k
+        run_m = 0.0
+        run_s = 0.0
+    if k >= 0:
+        run_m += 1.0
+        run_s += d
+    return n, last, run_k, run_m, run_s
+
+
+@njit(cache=True, inline="always")
+def _merge_entry(ck, cm, cs, cn: int, k: int, m: float, s: float) -> int:
+    # Add (m, s) to bin k of the decision list of cn entries; bins < 0 (no run) are skipped.
+    if k < 0:
+        return cn
+    i = 0
+    while i < cn and ck[i] != k:
+        i += 1
+    if i == cn:
+        ck[cn] = k
+        cm[cn] = 0.0
+        cs[cn] = 0.0
+        cn += 1
+    cm[i] += m
+    cs[i] += s
+    return cn
+
+
+@njit(cache=True, parallel=True)
+def geodesic_vote_line(disp, bins, packed, centre, passed, min_change: int, max_bins: int, vertical: bool):
+    """One pass of the geodesic vote along the rows (or, ``vertical``, the columns).
+
+    Every valid pixel g of a line votes for its 1-px bin with the product of the weights
+    ``passed[ΔC]`` of the neighbour pairs between g and the pixel f being decided (ΔC:
+    summed quarter-level channel difference of the two neighbours, ``packed`` colours from
+    :func:`packed_quarter_levels`): support travels along the line through similar colours
+    and dies at colour edges, so a pixel sides with the surface it is connected to by colour
+    (a recursive, edge-aware filter in the manner of Yang's recursive bilateral filter, with
+    votes per disparity bin). One pass from each end gives every pixel both halves of the sum
+    in O(1) per pixel and bin kept: each running vote keeps the ``max_bins`` bins of most mass
+    (a new bin replaces the weakest). Pixels with ``centre`` (H, W) bool take the weighted
+    mean disparity of the winning bin when it is at least ``min_change`` bins from their own;
+    the others keep their value. ``disp`` (H, W) float32 +inf invalid; ``bins`` from
+    :func:`disparity_bins`. Returns the new map.
+    """
+    h, w = bins.shape
+    out = disp.copy()
+    n_lines = w if vertical else h
+    n_pos = h if vertical else w
+    n_chunks = min(n_lines, 8)  # few chunks: each allocates its line buffers
+    for chunk in prange(n_chunks):
+        # Per-thread buffers, reused for every line of the chunk.
+        centres = np.empty(n_pos, np.int64)
+        decay = np.empty(n_pos, np.float64)  # decay[p]: weight passed between positions p - 1 and p
+        fk = np.empty((n_pos, max_bins + 1), np.int32)  # forward vote saved at each centre (true masses)
+        fm = np.empty((n_pos, max_bins + 1), np.float64)
+        fs = np.empty((n_pos, max_bins + 1), np.float64)
+        fn = np.zeros(n_pos, np.int64)
+        kk = np.empty(max_bins, np.int32)
+        mm = np.empty(max_bins, np.float64)  # masses and disparity sums, stored divided by ``scale``
+        ss = np.empty(max_bins, np.float64)
+        ck = np.empty(2 * max_bins + 3, np.int32)
+        cm = np.empty(2 * max_bins + 3, np.float64)
+        cs = np.empty(2 * max_bins + 3, np.float64)
+        for line in range(chunk * n_lines // n_chunks, (chunk + 1) * n_lines // n_chunks):
+            n_centres = 0
+            for p in range(n_pos):
+                if centre[p, line] if vertical else centre[line, p]:
+                    centres[n_centres] = p
+                    n_centres += 1
+            if n_centres == 0:
+                continue
+            # Forward: the running vote arriving at each centre (before its own vote). The
+            # current run of one bin is kept in true values (decayed by one multiply-add per
+            # pixel); the other bins in stored values, true = stored × scale, so decaying them
+            # is one multiplication of ``scale``.
+            n = 0
+            last = 0
+            scale = 1.0
+            run_k = -1
+            run_m = 0.0
+            run_s = 0.0
+            ci = 0
+            for p in range(n_pos):
+                if p > 0:
+                    if vertical:
+                        step = _packed_distance(packed[p, line], packed[p - 1, line])
+                    else:
+                        step = _packed_distance(packed[line, p], packed[line, p - 1])
+                    decay[p] = passed[step]  # kept for the backward pass
+                    scale, run_m, run_s = _decay_vote(mm, ss, n, scale, run_m, run_s, decay[p])
+                if ci < n_centres and centres[ci] == p:
+                    n, last, run_k, run_m, run_s = _add_vote(kk, mm, ss, n, last, scale, run_k, run_m, run_s, -1, 0.0)
+                    for j in range(n):
+                        fk[ci, j] = kk[j]
+                        fm[ci, j] = mm[j] * scale
+                        fs[ci, j] = ss[j] * scale
+                    fn[ci] = n
+                    ci += 1
+                k = bins[p, line] if vertical else bins[line, p]
+                if k >= 0:
+                    d = disp[p, line] if vertical else disp[line, p]
+                    n, last, run_k, run_m, run_s = _add_vote(kk, mm, ss, n, last, scale, run_k, run_m, run_s, k, d)
+            # Backward, deciding each centre from its own vote and both running votes.
+            n = 0
+            last = 0
+            scale = 1.0
+            run_k = -1
+            run_m = 0.0
+            run_s = 0.0
+            ci = n_centres - 1
+            for p in range(n_pos - 1, -1, -1):
+                if p < n_pos - 1:
+                    scale, run_m, run_s = _decay_vote(mm, ss, n, scale, run_m, run_s, decay[p + 1])
+                k = bins[p, line] if vertical else bins[line, p]
+                d = disp[p, line] if vertical else disp[line, p]
+                if ci >= 0 and centres[ci] == p:
+                    n, last, run_k, run_m, run_s = _add_vote(kk, mm, ss, n, last, scale, run_k, run_m, run_s, -1, 0.0)
+                    cn = 1
+                    ck[0] = k
+                    cm[0] = 1.0
+                    cs[0] = d
+                    for j in range(fn[ci]):
+                        cn = _merge_entry(ck, cm, cs, cn, fk[ci, j], fm[ci, j], fs[ci, j])
+                    for j in range(n):
+                        cn = _merge_entry(ck, cm, cs, cn, kk[j], mm[j] * scale, ss[j] * scale)
+                    best = 0
+                    for i in range(1, cn):
+                        if cm[i] > cm[best] or (cm[i] == cm[best] and ck[i] < ck[best]):
+                            best = i
+                    if abs(ck[best] - k) >= min_change:
+                        v = np.float32(cs[best] / cm[best])
+                        if vertical:
+                            out[p, line] = v
+                        else:
+                            out[line, p] = v
+                    ci -= 1
+                if k >= 0:
+                    n, last, run_k, run_m, run_s = _add_vote(kk, mm, ss, n, last, scale, run_k, run_m, run_s, k, d)
+    return out
