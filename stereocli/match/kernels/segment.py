@@ -462,34 +462,39 @@ def line_centre_mask(bins: np.ndarray, todo: np.ndarray, band: int, min_change: 
     use_todo = todo.shape[0] > 0
     none = np.int32(2 ** 30)  # stands for an invalid bin in the running minimum
     keep = np.zeros((h, w), np.bool_)
-    for y in prange(h):
-        # Largest and smallest valid bin within band along the line, for the whole row at
-        # once (plain loops over x that vectorise, instead of a search per pixel).
-        high = np.full(w, -1, np.int32)
-        low = np.full(w, none, np.int32)
-        if min_change > 0:
-            for t in range(-band, band + 1):
-                if vertical:
-                    if not 0 <= y + t < h:
-                        continue
-                    src = bins[y + t]
-                    for x in range(w):
-                        v = src[x]
-                        high[x] = max(high[x], v)
-                        low[x] = min(low[x], v if v >= 0 else none)
-                else:
-                    src = bins[y]
-                    # Unsigned indices: no negative-index fix-up, so the loop vectorises.
-                    for x in range(np.uint64(max(0, -t)), np.uint64(min(w, w - t))):
-                        v = src[x + np.uint64(t + w) - np.uint64(w)]
-                        high[x] = max(high[x], v)
-                        low[x] = min(low[x], v if v >= 0 else none)
-        for x in range(w):
-            own = bins[y, x]
-            ok = own >= 0 and (not use_todo or todo[y, x])
-            if ok and min_change > 0:
-                ok = high[x] - own >= min_change or own - low[x] >= min_change
-            keep[y, x] = ok
+    n_chunks = min(h, 8)
+    for chunk in prange(n_chunks):
+        # Row buffers allocated once per chunk of rows, not once per row.
+        high = np.empty(w, np.int32)
+        low = np.empty(w, np.int32)
+        for y in range(chunk * h // n_chunks, (chunk + 1) * h // n_chunks):
+            # Largest and smallest valid bin within band along the line, for the whole row
+            # at once (plain loops over x that vectorise, instead of a search per pixel).
+            high[:] = -1
+            low[:] = none
+            if min_change > 0:
+                for t in range(-band, band + 1):
+                    if vertical:
+                        if not 0 <= y + t < h:
+                            continue
+                        src = bins[y + t]
+                        for x in range(w):
+                            v = src[x]
+                            high[x] = max(high[x], v)
+                            low[x] = min(low[x], v if v >= 0 else none)
+                    else:
+                        src = bins[y]
+                        # Unsigned indices: no negative-index fix-up, so the loop vectorises.
+                        for x in range(np.uint64(max(0, -t)), np.uint64(min(w, w - t))):
+                            v = src[x + np.uint64(t + w) - np.uint64(w)]
+                            high[x] = max(high[x], v)
+                            low[x] = min(low[x], v if v >= 0 else none)
+            for x in range(w):
+                own = bins[y, x]
+                ok = own >= 0 and (not use_todo or todo[y, x])
+                if ok and min_change > 0:
+                    ok = high[x] - own >= min_change or own - low[x] >= min_change
+                keep[y, x] = ok
     return keep
 
 
