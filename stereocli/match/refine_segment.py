@@ -117,8 +117,9 @@ def geodesic_vote(state: MatchState, p: GeodesicVoteParams) -> None:
     bilateral filter. Only pixels within ``band`` px along the line of a step of
     ``min_change`` bins or more are decided, and they only move to a bin at least
     ``min_change`` away (the winning bin's weighted mean disparity), so sub-pixel values on
-    slanted surfaces stay. Place it at the end of the chain (after ``plane_smooth``); it
-    replaces ``region_voting`` in the default preset. Invalid pixels neither vote nor move.
+    slanted surfaces stay. Place it on the dense map, after the median and before
+    ``plane_smooth`` (which refits the slopes of the pixels it moved), as the default preset
+    does, where it replaces ``region_voting``. Invalid pixels neither vote nor move.
     """
     disp = np.ascontiguousarray(state.disparity, dtype=np.float32)
     left = _channels(state.left if p.color else state.gray("left"))
