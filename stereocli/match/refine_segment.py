@@ -13,6 +13,7 @@ import cv2
 import numpy as np
 
 from .cost import _channels
+from .kernels import maps as km
 from .kernels import segment as ks
 from ..errors import ConfigError
 from ..registry import param, register
@@ -65,18 +66,19 @@ def local_consistency(state: MatchState, p: LocalConsistencyParams) -> None:
     passes' shares), or multiplies an existing map (e.g. the ``confidence`` stage's) by it.
     """
     disp = np.ascontiguousarray(state.disparity, dtype=np.float32)
-    todo = _discontinuity_windows(disp, p.band or p.radius, p.min_spread, p.fill_invalid)
     left = _channels(state.left if p.color else state.gray("left"))
     right = _channels(state.right if p.color else state.gray("right"))
     if p.separable:
         left_packed = ks.packed_quarter_levels(left)
         right_packed = ks.packed_quarter_levels(right) if p.right else np.zeros((0, 0), np.int64)
         tables = _vote_tables(left.shape[2], p)
-        todo_or_all = todo if p.min_spread > 0 else np.zeros((0, 0), np.bool_)
+        # An empty todo stands for every pixel (no min_spread window to measure).
+        todo = (_discontinuity_windows(disp, p.band or p.radius, p.min_spread, False) if p.min_spread > 0
+                else np.zeros((0, 0), np.bool_))
         conf = None
         for vertical in (False, True):
-            bins = ks.disparity_bins(disp, state.min_disp, state.ndisp)
-            centres = ks.line_centres(bins, todo_or_all, p.band or p.radius, int(p.min_change), vertical)
+            bins = km.disparity_bins(disp, state.min_disp, state.ndisp)
+            centres = np.flatnonzero(ks.line_centre_mask(bins, todo, p.band or p.radius, int(p.min_change), vertical))
             disp, share = ks.local_consistency_line(disp, bins, centres, left_packed, right_packed, state.min_disp,
                                                     state.ndisp, p.radius, *tables, int(p.min_change), vertical,
                                                     bool(p.right))
@@ -85,6 +87,7 @@ def local_consistency(state: MatchState, p: LocalConsistencyParams) -> None:
     else:
         # Without the right-image term every match weight is exp(−Δ/∞) = 1 exactly.
         gamma_t = float(p.gamma_t) if p.right else np.inf
+        todo = _discontinuity_windows(disp, p.band or p.radius, p.min_spread, p.fill_invalid)
         disp, conf = ks.local_consistency(
             disp, left, right, state.min_disp, state.ndisp, p.radius, float(p.gamma_s), float(p.gamma_c),
             gamma_t, bool(p.fill_invalid), todo, int(p.min_change),
@@ -124,16 +127,22 @@ def geodesic_vote(state: MatchState, p: GeodesicVoteParams) -> None:
     disp = np.ascontiguousarray(state.disparity, dtype=np.float32)
     left = _channels(state.left if p.color else state.gray("left"))
     packed = ks.packed_quarter_levels(left)
-    steps = np.arange(1020 * left.shape[2] + 1) * (0.25 / left.shape[2])  # mean channel difference, grey levels
     # Weight passed between neighbours (distance and colour), by their colour difference.
-    passed = np.exp(-1.0 / p.gamma_s - steps / p.gamma_c)
+    passed = np.exp(-1.0 / p.gamma_s - _colour_steps(left.shape[2]) / p.gamma_c)
     everywhere = np.zeros((0, 0), np.bool_)
     for vertical in (False, True):
-        bins = ks.disparity_bins(disp, state.min_disp, state.ndisp)
+        bins = km.disparity_bins(disp, state.min_disp, state.ndisp)
         centre = ks.line_centre_mask(bins, everywhere, p.band, p.min_change, vertical)
         disp = ks.geodesic_vote_line(disp, bins, packed, centre, passed, int(p.min_change), int(p.max_bins),
                                      vertical)
     state.disparity = disp
+
+
+def _colour_steps(channels: int) -> np.ndarray:
+    """The vote tables' index: a summed channel difference in quarter grey levels (what
+    :func:`~stereocli.match.kernels.segment.packed_quarter_levels` colours give), as the mean
+    channel difference in grey levels, for every possible value."""
+    return np.arange(1020 * channels + 1) * (0.25 / channels)
 
 
 def _vote_tables(channels: int, p: LocalConsistencyParams):
@@ -141,7 +150,7 @@ def _vote_tables(channels: int, p: LocalConsistencyParams):
     (float32, by summed channel difference in quarter grey levels) and the match weight of a
     point outside the right image."""
     spatial = np.exp(-np.abs(np.arange(-p.radius, p.radius + 1)) / p.gamma_s).astype(np.float32)
-    steps = np.arange(1020 * channels + 1) * (0.25 / channels)  # mean channel difference, grey levels
+    steps = _colour_steps(channels)
     return (spatial, np.exp(-steps / p.gamma_c).astype(np.float32), np.exp(-steps / p.gamma_t).astype(np.float32),
             float(np.exp(-255.0 / p.gamma_t)))
 

@@ -1,4 +1,4 @@
-"""Compiled kernels over (H, W) disparity maps: consistency check, filling, median."""
+"""Compiled kernels over (H, W) disparity maps: consistency check, filling, median, 1-px bins."""
 
 from __future__ import annotations
 
@@ -71,3 +71,16 @@ def fill_background(disp: np.ndarray) -> np.ndarray:
                 else:
                     out[y, x] = nxt
     return out
+
+
+@njit(cache=True, parallel=True)
+def disparity_bins(disp: np.ndarray, min_disp: int, ndisp: int) -> np.ndarray:
+    """(H, W) int32 1-px bins ``round(d) − min_disp``; −1 for invalid (+inf) disparities and
+    those outside ``[min_disp, min_disp + ndisp)``."""
+    h, w = disp.shape
+    bins = np.empty((h, w), np.int32)
+    for y in prange(h):
+        for x in range(w):
+            v = disp[y, x] - min_disp + 0.5  # +inf and NaN fail both tests below
+            bins[y, x] = int(v) if (v >= 0.0 and v < ndisp) else -1
+    return bins

@@ -435,22 +435,7 @@ def _packed_distance_to(a, f0, f1, f2) -> int:
 @njit(cache=True, inline="always")
 def _packed_distance(a, b) -> int:
     # Sum of absolute channel differences of two packed colours (three fields; unused ones are 0).
-    return (abs((a & CHANNEL_MASK) - (b & CHANNEL_MASK))
-            + abs(((a >> CHANNEL_BITS) & CHANNEL_MASK) - ((b >> CHANNEL_BITS) & CHANNEL_MASK))
-            + abs((a >> (2 * CHANNEL_BITS)) - (b >> (2 * CHANNEL_BITS))))
-
-
-@njit(cache=True, parallel=True)
-def disparity_bins(disp: np.ndarray, min_disp: int, ndisp: int) -> np.ndarray:
-    """(H, W) int32 1-px bins ``round(d) − min_disp``; −1 for invalid (+inf) disparities and
-    those outside ``[min_disp, min_disp + ndisp)``."""
-    h, w = disp.shape
-    bins = np.empty((h, w), np.int32)
-    for y in prange(h):
-        for x in range(w):
-            v = disp[y, x] - min_disp + 0.5  # +inf and NaN fail both tests below
-            bins[y, x] = int(v) if (v >= 0.0 and v < ndisp) else -1
-    return bins
+    return _packed_distance_to(a, b & CHANNEL_MASK, (b >> CHANNEL_BITS) & CHANNEL_MASK, b >> (2 * CHANNEL_BITS))
 
 
 @njit(cache=True, parallel=True)
@@ -498,30 +483,6 @@ def line_centre_mask(bins: np.ndarray, todo: np.ndarray, band: int, min_change: 
     return keep
 
 
-@njit(cache=True, parallel=True)
-def line_centres(bins: np.ndarray, todo: np.ndarray, band: int, min_change: int, vertical: bool) -> np.ndarray:
-    """(N,) int64 flat indices ``y·W + x`` (ascending) of :func:`line_centre_mask`'s pixels."""
-    keep = line_centre_mask(bins, todo, band, min_change, vertical)
-    h, w = keep.shape
-    counts = np.zeros(h, np.int64)
-    for y in prange(h):
-        n = 0
-        for x in range(w):
-            n += keep[y, x]
-        counts[y] = n
-    starts = np.zeros(h + 1, np.int64)
-    for y in range(h):
-        starts[y + 1] = starts[y] + counts[y]
-    out = np.empty(starts[h], np.int64)
-    for y in prange(h):
-        i = starts[y]
-        for x in range(w):
-            if keep[y, x]:
-                out[i] = y * w + x
-                i += 1
-    return out
-
-
 @njit(cache=True, inline="always")
 def _line_votes(disp, bins, left_packed, right_packed, y: int, x: int, sy: int, sx: int, t0: int, t1: int,
                 radius: int, min_disp: int, spatial, colour_w, match_w, outside_w, hist, use_right: bool):
@@ -565,8 +526,8 @@ def local_consistency_line(disp, bins, centres, left_packed, right_packed, min_d
     """Mattoccia's locally consistent vote along one line per pixel: the row segment
     ``|x' − x| ≤ radius`` (or, ``vertical``, the column segment) instead of the square window.
 
-    ``bins`` (H, W) int32 from :func:`disparity_bins`; ``centres`` (N,) int64 from
-    :func:`line_centres`; ``left_packed``/``right_packed`` (H, W) int64 from
+    ``bins`` (H, W) int32 from :func:`~stereocli.match.kernels.maps.disparity_bins`; ``centres`` (N,) int64 ascending flat
+    indices ``y·W + x`` of :func:`line_centre_mask`'s pixels; ``left_packed``/``right_packed`` (H, W) int64 from
     :func:`packed_quarter_levels`. Every valid g on the segment of f votes for its bin with
     ``spatial[t + radius] · colour_w[ΔL(f, g)] · match_w[ΔR(f − d_g, g − d_g)]`` (t = g − f;
     ``outside_w`` when either right point is outside the image; no right-image factor when
@@ -723,7 +684,7 @@ def geodesic_vote_line(disp, bins, packed, centre, passed, min_change: int, max_
     (a new bin replaces the weakest). Pixels with ``centre`` (H, W) bool take the weighted
     mean disparity of the winning bin when it is at least ``min_change`` bins from their own;
     the others keep their value. ``disp`` (H, W) float32 +inf invalid; ``bins`` from
-    :func:`disparity_bins`. Returns the new map.
+    :func:`~stereocli.match.kernels.maps.disparity_bins`. Returns the new map.
     """
     h, w = bins.shape
     out = disp.copy()

@@ -11,6 +11,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from .maps import disparity_bins
+
 INF = np.float32(np.inf)
 
 #: The 16 search directions of the proper interpolation (Mei et al. 2011, §4): the 8
@@ -47,12 +49,7 @@ def region_vote(disp: np.ndarray, arms: np.ndarray, min_disp: int, ndisp: int, m
         snap[v] = v // stride * stride
     # Each pixel's vote, computed once (a pixel is in the regions of up to ~300 outliers): its
     # 1-px bin, or −1 for an outlier or a disparity outside the range.
-    bins = np.empty((h, w), np.int32)
-    for y in prange(h):
-        for x in range(w):
-            d = disp[y, x]
-            k = int(np.floor(d + 0.5)) - min_disp if np.isfinite(d) else -1
-            bins[y, x] = k if 0 <= k < ndisp else -1
+    bins = disparity_bins(disp, min_disp, ndisp)
     for i in prange(h):
         # Rows interleaved from both halves of the image: outliers cluster (occluded bands,
         # textureless areas), and prange gives each thread one contiguous block of i.
