@@ -80,35 +80,42 @@ def _penalty2(i0: float, i1: float, p1: int, p2: int, gamma: float) -> int:
 
 
 @njit(cache=True, inline="always")
-def _start(c, mul, out, acc) -> int:
-    # First pixel of a path: L_r(p, d) = C(p, d); adds L_r into ``acc``.
-    nd = c.shape[0]
+def _start(cf, c0, nd, mul, lf, o0, tf, s0, add: bool) -> int:
+    # First pixel of a path: L_r(p, d) = C(p, d), written at lf[o0 + 1 + d]; adds L_r into
+    # the sums tf[s0 + d] (or writes them: ``add`` false). Flat arrays and unsigned offsets
+    # (signed indices get negative-index fix-ups, which can stop LLVM vectorising).
     m = np.int16(INT16_MAX)
     mul16 = np.int16(mul)
-    for d in range(nd):
-        v = np.int16(np.int16(c[d]) * mul16)
-        out[d + 1] = v
-        acc[d] = np.uint16(acc[d] + np.uint16(v))
+    one = np.uint64(1)
+    for d in range(np.uint64(0), nd):
+        v = np.int16(np.int16(cf[c0 + d]) * mul16)
+        lf[o0 + d + one] = v
+        if add:
+            tf[s0 + d] = np.uint16(tf[s0 + d] + np.uint16(v))
+        else:
+            tf[s0 + d] = np.uint16(v)
         m = min(m, v)
     return m
 
 
 @njit(cache=True, inline="always")
-def _step(c, mul, prev, pmin, p1, p2, out, acc) -> int:
-    # Eq. 13: L(p,d) = C(p,d) + min(L(p-r,d), L(p-r,d±1) + P1, min_k L(p-r,k) + P2) - min_k L(p-r,k);
-    # adds L_r into ``acc``. Written in int16 so the loop vectorises at full width.
-    nd = c.shape[0]
-    pm = np.int16(pmin)
-    jump = np.int16(pmin + p2)
-    pp1 = np.int16(p1)
-    mul16 = np.int16(mul)
+def _step(cf, c0, nd, mul16, lf, p0, pm, jump, pp1, o0, tf, s0, add: bool) -> int:
+    # Eq. 13: L(p,d) = C(p,d) + min(L(p-r,d), L(p-r,d±1) + P1, min_k L(p-r,k) + P2) - min_k L(p-r,k),
+    # from the previous path costs at lf[p0 .. p0 + nd + 1] (sentinels at both ends) into
+    # lf[o0 + 1 + d], with pm = min_k L(p-r,k), jump = pm + P2 and pp1 = P1 (int16); adds L_r
+    # into tf[s0 + d] (or writes it). Written in int16 so the loop vectorises at full width.
     m = np.int16(INT16_MAX)
-    for d in range(nd):
-        a = prev[d + 1]
-        b = np.int16(min(prev[d], prev[d + 2]) + pp1)
-        v = np.int16(np.int16(min(min(a, b), jump) - pm) + np.int16(np.int16(c[d]) * mul16))
-        out[d + 1] = v
-        acc[d] = np.uint16(acc[d] + np.uint16(v))
+    one = np.uint64(1)
+    two = np.uint64(2)
+    for d in range(np.uint64(0), nd):
+        a = lf[p0 + d + one]
+        b = np.int16(min(lf[p0 + d], lf[p0 + d + two]) + pp1)
+        v = np.int16(np.int16(min(min(a, b), jump) - pm) + np.int16(np.int16(cf[c0 + d]) * mul16))
+        lf[o0 + d + one] = v
+        if add:
+            tf[s0 + d] = np.uint16(tf[s0 + d] + np.uint16(v))
+        else:
+            tf[s0 + d] = np.uint16(v)
         m = min(m, v)
     return m
 
@@ -141,6 +148,64 @@ def _min_packed(s, base, k0: int, k1: int, rbest, rb, want_right: bool) -> np.ui
 
 
 @njit(cache=True)
+def _horizontal_row(cf, mul, guide, y: int, forward: bool, fresh: bool, p1: int, p2: int, gamma: float, hf, hrow,
+                    pens, tf, w: int, und) -> None:
+    """The horizontal path of row ``y`` (from the left, or the right when not ``forward``):
+    writes its costs into the row's sums (``fresh``) or adds them. ``hf`` holds two buffers of
+    ``hrow`` int16 used in turn; the penalties go to ``pens``. (The row's paths are small
+    functions of their own rather than loops inside :func:`_pass_rows`: there LLVM kept their
+    state on the stack, and the kernel took 1.5× as long on Tsukuba's D = 16.)"""
+    s = 1 if forward else -1
+    for j in range(1, w):
+        x = j if forward else w - 1 - j
+        pens[x] = _penalty2(guide[y, x], guide[y, x - s], p1, p2, gamma)
+    row = np.uint64(y * w)
+    pp1 = np.int16(p1)
+    mul16 = np.int16(mul)
+    first = 0 if forward else w - 1
+    pix = (row + np.uint64(first)) * und
+    hmin = _start(cf, pix, und, mul, hf, np.uint64(0), tf, pix, not fresh)
+    for j in range(1, w):
+        x = j if forward else w - 1 - j
+        pix = (row + np.uint64(x)) * und
+        pm = np.int16(hmin)
+        hmin = _step(cf, pix, und, mul16, hf, np.uint64((j + 1) % 2) * hrow, pm, np.int16(pm + pens[x]), pp1,
+                     np.uint64(j % 2) * hrow, tf, pix, not fresh)
+
+
+@njit(cache=True)
+def _direction_row(cf, mul, lf, tf, mins, pens, k: int, ring: int, ip: int, pr: int, shift: int, row0, w: int,
+                   und, lrow, cur_row, prev_row, p1: int) -> None:
+    """One row of the path from the rows above (below), direction ``k``: its predecessor of x
+    is x − ``shift`` in pass row ``ip`` (ring slot ``pr``), or none (the path starts). A small
+    function of its own, so the compiler keeps its loop variables in registers."""
+    one = np.uint64(1)
+    two = np.uint64(2)
+    pp1 = np.int16(p1)
+    mul16 = np.int16(mul)
+    for x in range(w):
+        xp = x - shift
+        pix = (row0 + np.uint64(x)) * und
+        cur = cur_row + np.uint64(x) * lrow
+        if ip < 0 or xp < 0 or xp >= w:
+            mins[k, ring, x] = _start(cf, pix, und, mul, lf, cur, tf, pix, True)
+        else:
+            # :func:`_step` written out: through the inlined call this loop ran 25-30 % slower.
+            pm = mins[k, pr, xp]
+            jump = np.int16(pm + pens[k + 1, x])
+            po = prev_row + np.uint64(xp) * lrow
+            m = np.int16(INT16_MAX)
+            for d in range(np.uint64(0), und):
+                a = lf[po + d + one]
+                b = np.int16(min(lf[po + d], lf[po + d + two]) + pp1)
+                v = np.int16(np.int16(min(min(a, b), jump) - pm) + np.int16(np.int16(cf[pix + d]) * mul16))
+                lf[cur + d + one] = v
+                tf[pix + d] = np.uint16(tf[pix + d] + np.uint16(v))
+                m = min(m, v)
+            mins[k, ring, x] = m
+
+
+@njit(cache=True)
 def _pass_rows(cq, mul, guide, total, dirs, forward: bool, i0: int, i1: int, fresh: bool,
                p1: int, p2: int, gamma: float, lbuf, mins, hbuf, pens,
                disp, disp_r, rbest, min_disp: int) -> None:
@@ -150,22 +215,27 @@ def _pass_rows(cq, mul, guide, total, dirs, forward: bool, i0: int, i1: int, fre
     (y, x − 1) for the horizontal path and (y − dy, x − dx) for the others; backward is the
     mirror image. ``fresh``: write this pass's path sums into ``total`` (first phase) or add
     them and take the winners (second phase; ``disp``/``disp_r`` are written there).
-    ``lbuf`` (K, 3, W, D + 2) int16, ``mins`` (K, 3, W) int16, ``hbuf`` (2, D + 2) int16 and
+    ``lbuf`` (K, 3, W + 1, D + 2) int16, ``mins`` (K, 3, W) int16, ``hbuf`` (2, D + 2) int16 and
     ``pens`` (K + 1, W) int32 (each possibly longer: ``GAP``) carry the pass's state from one
-    call to the next; ``rbest`` (W,)
-    uint32 is scratch for the right view.
+    call to the next; ``rbest`` (W,) uint32 is scratch for the right view. ``cq``, ``total``,
+    ``lbuf`` and ``hbuf`` are C-contiguous and read through flat views (see :func:`_start`).
     """
     h, w, nd = cq.shape
     nk = dirs.shape[0]
     s = 1 if forward else -1
     want_right = disp_r.shape[0] > 0
+    cf = cq.reshape(-1)
+    tf = total.reshape(-1)
+    lf = lbuf.reshape(-1)
+    hf = hbuf.reshape(-1)
+    und = np.uint64(nd)
+    lrow = np.uint64(nd + 2)  # one pixel's path costs in lbuf, sentinels included
+    lplane = np.uint64(lbuf.shape[2]) * lrow  # one row of one direction in lbuf
+    hrow = np.uint64(hbuf.shape[1])
     for i in range(i0, i1):
         y = i if forward else h - 1 - i
         ring = i % 3
-        # Penalties of this row for the horizontal path (index 0) and each direction.
-        for j in range(1, w):
-            x = j if forward else w - 1 - j
-            pens[0, x] = _penalty2(guide[y, x], guide[y, x - s], p1, p2, gamma)
+        # Penalties of this row for each direction (the horizontal path's: _horizontal_row).
         for k in range(nk):
             dy = dirs[k, 0]
             if i - dy < 0:
@@ -174,30 +244,13 @@ def _pass_rows(cq, mul, guide, total, dirs, forward: bool, i0: int, i1: int, fre
                 xp = x - s * dirs[k, 1]
                 if 0 <= xp < w:
                     pens[k + 1, x] = _penalty2(guide[y, x], guide[y - s * dy, xp], p1, p2, gamma)
-        # One path direction at a time over the whole row: tight loops that LLVM vectorises
-        # well (the row of sums, W·D uint16, stays in L2 between directions).
-        hmin = 0
-        for j in range(w):
-            x = j if forward else w - 1 - j
-            acc = total[y, x]
-            if fresh:
-                acc[:] = 0
-            hcur = hbuf[j % 2]
-            if j == 0:
-                hmin = _start(cq[y, x], mul, hcur, acc)
-            else:
-                hmin = _step(cq[y, x], mul, hbuf[(j + 1) % 2], hmin, p1, pens[0, x], hcur, acc)
+        # The horizontal path writes the row's sums in the first phase; every other path adds to them.
+        _horizontal_row(cf, mul, guide, y, forward, fresh, p1, p2, gamma, hf, hrow, pens[0], tf, w, und)
+        row0 = np.uint64(y * w)
         for k in range(nk):
             ip = i - dirs[k, 0]
-            pr = ip % 3
-            for x in range(w):
-                xp = x - s * dirs[k, 1]
-                cur = lbuf[k, ring, x]
-                if ip < 0 or xp < 0 or xp >= w:
-                    mins[k, ring, x] = _start(cq[y, x], mul, cur, total[y, x])
-                else:
-                    mins[k, ring, x] = _step(cq[y, x], mul, lbuf[k, pr, xp], mins[k, pr, xp], p1, pens[k + 1, x],
-                                             cur, total[y, x])
+            _direction_row(cf, mul, lf, tf, mins, pens, k, ring, ip, ip % 3, s * dirs[k, 1], row0, w, und, lrow,
+                           np.uint64(k * 3 + ring) * lplane, np.uint64(k * 3 + ip % 3) * lplane, p1)
         if not fresh:
             # The row's sums are complete: left WTA among hypotheses whose right pixel x − d
             # lies inside the image, and the right view (Hirschmüller 2008 §2.5, same volume:
@@ -213,8 +266,8 @@ def _pass_rows(cq, mul, guide, total, dirs, forward: bool, i0: int, i1: int, fre
                 if k1 < k0:
                     disp[y, x] = INF
                     continue
-                best = _min_packed(total[y, x], np.uint64(0), k0, k1, rbest, np.uint64(w - 1 - x + min_disp),
-                                   want_right)
+                best = _min_packed(tf, (row0 + np.uint64(x)) * und, k0, k1, rbest,
+                                   np.uint64(w - 1 - x + min_disp), want_right)
                 disp[y, x] = np.float32(min_disp + np.int64(best & np.uint32(0xFFFF)))
             if want_right:
                 for xr in range(w):
@@ -262,6 +315,7 @@ def sgm_aggregate(cq: np.ndarray, guide: np.ndarray, paths: int, p1: int, p2: in
     """
     if cq.shape[2] > 65535:
         raise ValueError("SGM supports at most 65535 disparities")  # the winner packs k in 16 bits
+    cq = np.ascontiguousarray(cq)  # the kernel reads it through a flat view
     total = np.empty(cq.shape, np.uint16)
     guide = np.ascontiguousarray(guide, dtype=np.float32)
     disp, disp_r = sgm_two_pass(cq, int(cost_mul), guide, total, DOWN_DIRECTIONS[paths], int(p1), int(p2),
