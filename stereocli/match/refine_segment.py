@@ -134,7 +134,7 @@ def geodesic_vote(state: MatchState, p: GeodesicVoteParams) -> None:
         bins = km.disparity_bins(disp, state.min_disp, state.ndisp)
         centre = ks.line_centre_mask(bins, everywhere, p.band, p.min_change, vertical)
         disp = ks.geodesic_vote_line(disp, bins, packed, centre, passed, int(p.min_change), int(p.max_bins),
-                                     vertical)
+                                     int(state.ndisp), vertical)
     state.disparity = disp
 
 
