@@ -446,7 +446,7 @@ def line_centre_mask(bins: np.ndarray, todo: np.ndarray, band: int, min_change: 
     h, w = bins.shape
     use_todo = todo.shape[0] > 0
     none = np.int32(2 ** 30)  # stands for an invalid bin in the running minimum
-    keep = np.zeros((h, w), np.bool_)
+    keep = np.empty((h, w), np.bool_)  # every row is written below
     n_chunks = min(h, 8)
     for chunk in prange(n_chunks):
         # Row buffers allocated once per chunk of rows, not once per row.

@@ -274,6 +274,8 @@ def _pass_rows(cq, mul, guide, total, dirs, forward: bool, i0: int, i1: int, fre
                     v = rbest[w - 1 - xr]
                     if v != 0xFFFFFFFF:
                         disp_r[y, xr] = np.float32(min_disp + np.int64(v & np.uint32(0xFFFF)))
+                    else:
+                        disp_r[y, xr] = INF
 
 
 @njit(cache=True, parallel=True)
@@ -293,7 +295,7 @@ def sgm_two_pass(cq, mul: int, guide, total, dirs, p1: int, p2: int, gamma: floa
     pens = np.full((2, nk + 1, w + GAP), p2, np.int32)
     rbest = np.zeros((2, w + GAP if want_right else 0), np.uint32)
     disp = np.empty((h, w), np.float32)
-    disp_r = np.full((h if want_right else 0, w if want_right else 0), INF, np.float32)
+    disp_r = np.empty((h if want_right else 0, w if want_right else 0), np.float32)  # rows set in phase 2
     for phase in range(2):
         fresh = phase == 0
         for t in prange(2):
