@@ -104,6 +104,26 @@ def test_quantize_rounds_and_caps():
     np.testing.assert_array_equal(out[0, 0], [0, 1, 1, 20, 40])
 
 
+def _layered_costs(h: int, w: int, nd: int, seed: int):
+    # Costs of a scene of two disparities (2 and 5 px) in blocks, with noise.
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:h, 0:w]
+    truth = 2 + 3 * ((xx // 5 + yy // 37) % 2)
+    k = np.arange(nd)[None, None, :]
+    cq = np.minimum(np.abs(k - truth[..., None]) * 4 + rng.integers(0, 6, (h, w, nd)), 30).astype(np.uint8)
+    return cq, (truth * 40).astype(np.float32), truth
+
+
+def test_sgm_tall_image_equals_reference():
+    # 200 rows: the two threads hand the halves over at row 100 (each pass's state carries
+    # across it); the sums equal the reference's everywhere and the winners find the truth.
+    cq, guide, truth = _layered_costs(200, 16, 8, 4)
+    s, disp, _ = ks.sgm_aggregate(cq, guide, 4, 5, 40, 4.0, 0, False)
+    np.testing.assert_array_equal(s.astype(np.int64), reference_sgm(cq, guide, 4, 5, 40, 4.0))
+    inside = np.arange(16)[None, :] >= truth  # the true match lies inside the right image
+    assert np.mean(disp[inside] == truth[inside]) > 0.95
+
+
 def test_sgm_deterministic_across_thread_counts():
     import numba
 

@@ -13,7 +13,7 @@ from stereocli.match.kernels import sgm_window as kw
 from stereocli.match.optimize import sgm as osgm
 from stereocli.match.pipeline import match_pair
 from stereocli.match.state import MatchState
-from test_kernels_sgm import reference_sgm
+from test_kernels_sgm import _layered_costs, reference_sgm
 from test_sgm import bad, run, warp_pair
 
 # The default preset searches narrow ranges and small volumes (every test image here) at full
@@ -60,6 +60,24 @@ def test_full_windows_equal_the_dense_kernel(paths):
     hi = np.full((h, w), nd, np.int32)
     r, dense = _windowed(cq, guide, paths, lo, hi, 8, min_disp=-2)
     s, d, dr = ks.sgm_aggregate(cq, guide, paths, 3, 20, 4.0, -2, True)
+    np.testing.assert_array_equal(dense, s)
+    np.testing.assert_array_equal(r["disparity"], d)
+    np.testing.assert_array_equal(r["disparity_right"], dr)
+
+
+def test_tall_image_equals_reference_and_dense_kernel():
+    # 200 rows (the threads hand the halves over at row 100): against the reference on narrow
+    # windows around the truth, and against the dense kernel on full windows.
+    cq, guide, truth = _layered_costs(200, 16, 8, 1)
+    rng = np.random.default_rng(1)
+    lo = np.clip(truth - rng.integers(0, 3, truth.shape), 0, 7).astype(np.int32)
+    hi = np.clip(truth + 1 + rng.integers(0, 3, truth.shape), 1, 8).astype(np.int32)
+    _, dense = _windowed(cq, guide, 4, lo, hi, 4)
+    np.testing.assert_array_equal(dense.astype(np.int64), reference_sgm(cq, guide, 4, 3, 20, 4.0, lo, hi))
+    full_lo = np.zeros(truth.shape, np.int32)
+    full_hi = np.full(truth.shape, 8, np.int32)
+    r, dense = _windowed(cq, guide, 4, full_lo, full_hi, 8)
+    s, d, dr = ks.sgm_aggregate(cq, guide, 4, 3, 20, 4.0, 0, True)
     np.testing.assert_array_equal(dense, s)
     np.testing.assert_array_equal(r["disparity"], d)
     np.testing.assert_array_equal(r["disparity_right"], dr)
