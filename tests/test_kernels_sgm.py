@@ -83,9 +83,9 @@ def test_sgm_uint16_costs_and_negative_min_disp():
 @pytest.mark.parametrize("min_disp", [0, -3, 4])
 @pytest.mark.parametrize("height", [1, 5, 8])
 def test_sgm_right_view_and_cost_multiplier_match_reference(min_disp, height):
-    # The right-view WTA is taken while the second phase finishes each row: it must equal
+    # The right-view WTA is taken while the backward pass finishes each row: it must equal
     # the volume-level WTA (stereocli.match.kernels.volume.wta_right) on the final sums, for
-    # odd/even/single-row heights (the two phases split the rows at H // 2).
+    # odd/even/single-row heights (the two stripes split the rows at H // 2).
     from stereocli.match.kernels.volume import wta_right
 
     rng = np.random.default_rng(height)
@@ -105,7 +105,8 @@ def test_quantize_rounds_and_caps():
 
 
 def _layered_costs(h: int, w: int, nd: int, seed: int):
-    # Costs of a scene of two disparities (2 and 5 px) in blocks, with noise.
+    # Costs of a scene of two disparities (2 and 5 px) in blocks, with noise: the winners and
+    # the path costs settle within a few rows of any change.
     rng = np.random.default_rng(seed)
     yy, xx = np.mgrid[0:h, 0:w]
     truth = 2 + 3 * ((xx // 5 + yy // 37) % 2)
@@ -114,10 +115,15 @@ def _layered_costs(h: int, w: int, nd: int, seed: int):
     return cq, (truth * 40).astype(np.float32), truth
 
 
-def test_sgm_tall_image_equals_reference():
-    # 200 rows: the two threads hand the halves over at row 100 (each pass's state carries
-    # across it); the sums equal the reference's everywhere and the winners find the truth.
-    cq, guide, truth = _layered_costs(200, 16, 8, 4)
+@pytest.mark.parametrize("height", [96, 200])
+def test_sgm_row_stripes_equal_whole_image_passes(height):
+    # The full-range kernel runs both passes within each of two row stripes, starting
+    # STRIPE_OVERLAP rows beyond it. Up to 2 × 48 rows every pass still covers the whole image;
+    # on 200 rows the paths through the seam (row 100) start 48 rows away, by which point
+    # these integer path costs have settled: the sums equal those of whole-image passes
+    # exactly. (With an overlap of 2 rows, rows 95-105 differ.)
+    assert ks.STRIPES == 2 and ks.STRIPE_OVERLAP == 48
+    cq, guide, truth = _layered_costs(height, 16, 8, 4)
     s, disp, _ = ks.sgm_aggregate(cq, guide, 4, 5, 40, 4.0, 0, False)
     np.testing.assert_array_equal(s.astype(np.int64), reference_sgm(cq, guide, 4, 5, 40, 4.0))
     inside = np.arange(16)[None, :] >= truth  # the true match lies inside the right image
@@ -128,8 +134,9 @@ def test_sgm_deterministic_across_thread_counts():
     import numba
 
     rng = np.random.default_rng(9)
-    cq = rng.integers(0, 255, (40, 70, 23)).astype(np.uint8)
-    guide = rng.random((40, 70)).astype(np.float32) * 255
+    # Taller than two stripes and their overlaps, so the seam rows take truncated paths.
+    cq = rng.integers(0, 255, (130, 70, 23)).astype(np.uint8)
+    guide = rng.random((130, 70)).astype(np.float32) * 255
     old = numba.get_num_threads()
     try:
         numba.set_num_threads(1)

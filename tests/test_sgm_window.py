@@ -65,9 +65,11 @@ def test_full_windows_equal_the_dense_kernel(paths):
     np.testing.assert_array_equal(r["disparity_right"], dr)
 
 
-def test_tall_image_equals_reference_and_dense_kernel():
-    # 200 rows (the threads hand the halves over at row 100): against the reference on narrow
-    # windows around the truth, and against the dense kernel on full windows.
+def test_row_stripes_on_a_tall_image():
+    # 200 rows: two row stripes, each pass warming up over 48 rows of the other stripe, whose
+    # sums must go to the kernel's scratch row, not into the other stripe's sums (written
+    # there, they changed rows 52-99). Against the reference on narrow windows around the
+    # truth, and against the dense kernel (same stripes) on full windows.
     cq, guide, truth = _layered_costs(200, 16, 8, 1)
     rng = np.random.default_rng(1)
     lo = np.clip(truth - rng.integers(0, 3, truth.shape), 0, 7).astype(np.int32)

@@ -17,14 +17,23 @@ Layout and numerics (see ``tests/test_kernels_sgm.py`` for the pure-numpy refere
   the row's inner loops (a division in the inner loop stops LLVM from vectorising it).
 * Two raster passes (Hirschmüller 2008 §2.4): the forward pass (top to bottom, left to right)
   sums the horizontal path from the left and the paths from the rows above; the backward pass
-  the mirrored directions. Each keeps three rows of path costs per direction. Both passes
-  write into one uint16 volume ``S`` and run on two threads in two phases: first the forward
-  pass covers the top half and the backward pass the bottom half, each *writing* its sums;
-  then each continues into the other half, *adding* its sums to the ones already there, and
-  takes the winner (left and right views) as soon as a pixel's (and row's) total is
-  complete. So there is no separate combine sweep and only one uint16 volume.
-* Every element is computed by one thread with integer arithmetic in a fixed order, so the
-  result is bit-identical for any thread count.
+  the mirrored directions. Each keeps three rows of path costs per direction. Both write into
+  one uint16 volume ``S``: the forward pass *writes* its sums, the backward pass *adds* its
+  own and takes the winner (left and right views) as soon as a row's total is complete. So
+  there is no separate combine sweep and only one uint16 volume.
+* The image is cut into ``STRIPES`` (2) row stripes, one thread each, and both passes run
+  within a stripe, starting ``STRIPE_OVERLAP`` (48) rows beyond it so that the paths from
+  above and below arrive warmed up (OpenCV's SGBM 3WAY overlaps its stripes likewise). The
+  paths through the seam are therefore truncated at 48 rows (``S`` differs from whole-image
+  passes only there; where a stripe and its overlap reach the image border, as on images of
+  at most 96 rows, it is exact). Each thread then works on its own rows only, which the
+  later stages, parallel over rows in the same halves, read from the same core. (Until
+  session 9 both passes ran over the whole image, in two phases with the threads swapping
+  halves: as fast in the VM's usual state, but in its slow minutes, when data written on one
+  core took twice as long to reach the other, the Tsukuba pair took about 0.4 ms longer.)
+* The stripe plan does not depend on the thread count, and every element is computed by one
+  thread with integer arithmetic in a fixed order, so the result is bit-identical for any
+  thread count.
 """
 
 from __future__ import annotations
@@ -174,11 +183,13 @@ def _horizontal_row(cf, mul, guide, y: int, forward: bool, fresh: bool, p1: int,
 
 
 @njit(cache=True)
-def _direction_row(cf, mul, lf, tf, mins, pens, k: int, ring: int, ip: int, pr: int, shift: int, row0, w: int,
-                   und, lrow, cur_row, prev_row, p1: int) -> None:
+def _direction_row(cf, mul, lf, tf, mins, pens, k: int, ring: int, ip: int, pr: int, shift: int, row0, srow0,
+                   w: int, und, lrow, cur_row, prev_row, p1: int, i_start: int) -> None:
     """One row of the path from the rows above (below), direction ``k``: its predecessor of x
-    is x − ``shift`` in pass row ``ip`` (ring slot ``pr``), or none (the path starts). A small
-    function of its own, so the compiler keeps its loop variables in registers."""
+    is x − ``shift`` in pass row ``ip`` (ring slot ``pr``), or none (the path starts: ``ip``
+    before the pass's first row ``i_start``). Costs are read at row ``row0`` of ``cf``, the
+    sums added at row ``srow0`` of ``tf``. A small function of its own, so the compiler keeps
+    its loop variables in registers."""
     one = np.uint64(1)
     two = np.uint64(2)
     pp1 = np.int16(p1)
@@ -186,9 +197,10 @@ def _direction_row(cf, mul, lf, tf, mins, pens, k: int, ring: int, ip: int, pr: 
     for x in range(w):
         xp = x - shift
         pix = (row0 + np.uint64(x)) * und
+        spix = (srow0 + np.uint64(x)) * und
         cur = cur_row + np.uint64(x) * lrow
-        if ip < 0 or xp < 0 or xp >= w:
-            mins[k, ring, x] = _start(cf, pix, und, mul, lf, cur, tf, pix, True)
+        if ip < i_start or xp < 0 or xp >= w:
+            mins[k, ring, x] = _start(cf, pix, und, mul, lf, cur, tf, spix, True)
         else:
             # :func:`_step` written out: through the inlined call this loop ran 25-30 % slower.
             pm = mins[k, pr, xp]
@@ -200,21 +212,24 @@ def _direction_row(cf, mul, lf, tf, mins, pens, k: int, ring: int, ip: int, pr: 
                 b = np.int16(min(lf[po + d], lf[po + d + two]) + pp1)
                 v = np.int16(np.int16(min(min(a, b), jump) - pm) + np.int16(np.int16(cf[pix + d]) * mul16))
                 lf[cur + d + one] = v
-                tf[pix + d] = np.uint16(tf[pix + d] + np.uint16(v))
+                tf[spix + d] = np.uint16(tf[spix + d] + np.uint16(v))
                 m = min(m, v)
             mins[k, ring, x] = m
 
 
 @njit(cache=True)
-def _pass_rows(cq, mul, guide, total, dirs, forward: bool, i0: int, i1: int, fresh: bool,
-               p1: int, p2: int, gamma: float, lbuf, mins, hbuf, pens,
+def _pass_rows(cq, mul, guide, total, dirs, forward: bool, i0: int, i1: int, i_keep: int, fresh: bool,
+               p1: int, p2: int, gamma: float, lbuf, mins, hbuf, pens, scratch,
                disp, disp_r, rbest, min_disp: int) -> None:
     """Rows ``i0 ≤ i < i1`` (in pass order) of one raster pass; see the module docstring.
 
     ``forward``: rows top to bottom, pixels left to right, the predecessor of (y, x) is
     (y, x − 1) for the horizontal path and (y − dy, x − dx) for the others; backward is the
-    mirror image. ``fresh``: write this pass's path sums into ``total`` (first phase) or add
-    them and take the winners (second phase; ``disp``/``disp_r`` are written there).
+    mirror image. The paths start at row ``i0``. Rows before ``i_keep`` only warm the paths
+    from the rows above (below) up: their sums go to ``scratch`` (one row, W·D uint16) and
+    there is no horizontal path. From ``i_keep`` on, ``fresh``: write this pass's path sums
+    into ``total`` (the forward pass) or add them and take the winners (the backward pass;
+    ``disp``/``disp_r`` are written there).
     ``lbuf`` (K, 3, W + 1, D + 2) int16, ``mins`` (K, 3, W) int16, ``hbuf`` (2, D + 2) int16 and
     ``pens`` (K + 1, W) int32 (each possibly longer: ``GAP``) carry the pass's state from one
     call to the next; ``rbest`` (W,) uint32 is scratch for the right view. ``cq``, ``total``,
@@ -226,6 +241,7 @@ def _pass_rows(cq, mul, guide, total, dirs, forward: bool, i0: int, i1: int, fre
     want_right = disp_r.shape[0] > 0
     cf = cq.reshape(-1)
     tf = total.reshape(-1)
+    sf = scratch.reshape(-1)
     lf = lbuf.reshape(-1)
     hf = hbuf.reshape(-1)
     und = np.uint64(nd)
@@ -244,14 +260,17 @@ def _pass_rows(cq, mul, guide, total, dirs, forward: bool, i0: int, i1: int, fre
                 xp = x - s * dirs[k, 1]
                 if 0 <= xp < w:
                     pens[k + 1, x] = _penalty2(guide[y, x], guide[y - s * dy, xp], p1, p2, gamma)
-        # The horizontal path writes the row's sums in the first phase; every other path adds to them.
-        _horizontal_row(cf, mul, guide, y, forward, fresh, p1, p2, gamma, hf, hrow, pens[0], tf, w, und)
         row0 = np.uint64(y * w)
+        kept = i >= i_keep
+        if kept:
+            # The horizontal path writes the row's sums in the forward pass; every other path adds to them.
+            _horizontal_row(cf, mul, guide, y, forward, fresh, p1, p2, gamma, hf, hrow, pens[0], tf, w, und)
         for k in range(nk):
             ip = i - dirs[k, 0]
-            _direction_row(cf, mul, lf, tf, mins, pens, k, ring, ip, ip % 3, s * dirs[k, 1], row0, w, und, lrow,
-                           np.uint64(k * 3 + ring) * lplane, np.uint64(k * 3 + ip % 3) * lplane, p1)
-        if not fresh:
+            _direction_row(cf, mul, lf, tf if kept else sf, mins, pens, k, ring, ip, ip % 3, s * dirs[k, 1], row0,
+                           row0 if kept else np.uint64(0), w, und, lrow, np.uint64(k * 3 + ring) * lplane,
+                           np.uint64(k * 3 + ip % 3) * lplane, p1, i0)
+        if kept and not fresh:
             # The row's sums are complete: left WTA among hypotheses whose right pixel x − d
             # lies inside the image, and the right view (Hirschmüller 2008 §2.5, same volume:
             # right pixel xr takes the d minimising S[y, xr + d, d]) in the same pass: each left
@@ -278,32 +297,54 @@ def _pass_rows(cq, mul, guide, total, dirs, forward: bool, i0: int, i1: int, fre
                         disp_r[y, xr] = INF
 
 
+#: Row stripes of the full-range search, each with its own forward and backward pass (one
+#: thread each). A fixed number, so the result does not depend on the thread count.
+STRIPES = 2
+#: Rows beyond a stripe's own that its passes run through first, so that the paths from above
+#: (below) arrive warmed up, as they would through the whole image (OpenCV's SGBM 3WAY
+#: overlaps its stripes the same way). Where a stripe and its overlap reach the image border
+#: the sums are exactly those of whole-image passes.
+STRIPE_OVERLAP = 48
+
+
 @njit(cache=True, parallel=True)
 def sgm_two_pass(cq, mul: int, guide, total, dirs, p1: int, p2: int, gamma: float, min_disp: int,
                  want_right: bool):
-    """Both passes in two phases (module docstring); returns left and right WTA disparities.
+    """Both passes per row stripe (module docstring); returns left and right WTA disparities.
 
     ``total`` (H, W, D) uint16 receives ``S``. Disparities are float32 (H, W), integer-valued,
     +inf where no hypothesis is inside the image; the right map is (0, 0) when not wanted.
     """
     h, w, nd = cq.shape
     nk = dirs.shape[0]
-    split = h // 2  # forward pass writes rows [0, split), backward rows [split, h) first
-    lbuf = np.full((2, nk, 3, w + 1, nd + 2), INT16_MAX - p1, np.int16)  # (a spare pixel: GAP)
-    hbuf = np.full((2, 2, nd + 2 + GAP), INT16_MAX - p1, np.int16)
-    mins = np.zeros((2, nk, 3, w + GAP), np.int16)
-    pens = np.full((2, nk + 1, w + GAP), p2, np.int32)
-    rbest = np.zeros((2, w + GAP if want_right else 0), np.uint32)
+    lbuf = np.full((STRIPES, nk, 3, w + 1, nd + 2), INT16_MAX - p1, np.int16)  # (a spare pixel: GAP)
+    hbuf = np.full((STRIPES, 2, nd + 2 + GAP), INT16_MAX - p1, np.int16)
+    mins = np.zeros((STRIPES, nk, 3, w + GAP), np.int16)
+    pens = np.full((STRIPES, nk + 1, w + GAP), p2, np.int32)
+    scratch = np.empty((STRIPES, w * nd + GAP), np.uint16)
+    rbest = np.zeros((STRIPES, w + GAP if want_right else 0), np.uint32)
     disp = np.empty((h, w), np.float32)
-    disp_r = np.empty((h if want_right else 0, w if want_right else 0), np.float32)  # rows set in phase 2
-    for phase in range(2):
-        fresh = phase == 0
-        for t in prange(2):
-            forward = t == 0
-            first = split if forward else h - split  # rows (in pass order) of the first phase
-            i0, i1 = (0, first) if fresh else (first, h)
-            _pass_rows(cq, mul, guide, total, dirs, forward, i0, i1, fresh, p1, p2, gamma,
-                       lbuf[t], mins[t], hbuf[t], pens[t], disp, disp_r, rbest[t], min_disp)
+    disp_r = np.empty((h if want_right else 0, w if want_right else 0), np.float32)  # rows set by the backward pass
+    for t in prange(STRIPES):
+        # Rows [y0, y1): the forward pass from y0 − overlap writes their sums, the backward
+        # pass from y1 + overlap adds its own and takes the winners. Each thread works on its
+        # own rows throughout, which the later stages (parallel over rows, in the same
+        # halves) then read from the same core.
+        y0 = t * h // STRIPES
+        y1 = (t + 1) * h // STRIPES
+        if y1 <= y0:
+            continue
+        top = max(0, y0 - STRIPE_OVERLAP)
+        bottom = min(h, y1 + STRIPE_OVERLAP)
+        for j in range(2):
+            # One call site with run-time arguments: two calls with constant ones let LLVM
+            # inline and specialise the row function, and the kernel ran 3x slower.
+            forward = j == 0
+            i0 = top if forward else h - bottom
+            i1 = y1 if forward else h - y0
+            i_keep = y0 if forward else h - y1
+            _pass_rows(cq, mul, guide, total, dirs, forward, i0, i1, i_keep, forward, p1, p2, gamma,
+                       lbuf[t], mins[t], hbuf[t], pens[t], scratch[t], disp, disp_r, rbest[t], min_disp)
     return disp, disp_r
 
 

@@ -1,8 +1,9 @@
 """Semi-global matching restricted to a window of hypotheses per pixel (coarse-to-fine search).
 
-The same recursion and two-pass, two-phase schedule as :mod:`.sgm` (read its docstring
-first), with each pixel ``p`` searching only ``[lo(p), hi(p))`` (volume indices) instead of
-the whole range: the windows come from a coarse disparity map
+The same recursion and the same row stripes (two, one thread each, both passes within a
+stripe and 48 rows beyond it) as :mod:`.sgm` (read its docstring first), with each pixel
+``p`` searching only ``[lo(p), hi(p))`` (volume indices) instead of the whole range. The
+windows come from a coarse disparity map
 (:func:`stereocli.match.optimize.sgm.search_windows`), in the spirit of Rothermel et al.'s
 tSGM ("SURE: photogrammetric surface reconstruction from imagery", 2012).
 
@@ -24,7 +25,7 @@ tSGM ("SURE: photogrammetric surface reconstruction from imagery", 2012).
 * Inner loops index with unsigned integers (numba emits no negative-index wrap-around code
   for them, so LLVM vectorises loops that start at a run-time bound). The flat index is
   ``(offset − run_lo) + k`` computed modulo 2⁶⁴, which is exact for every k ≥ run_lo.
-* In the first phase the horizontal path, the first to reach a pixel, overwrites the sums
+* In the forward pass the horizontal path, the first to reach a pixel, overwrites the sums
   (``keep`` mask 0) instead of adding: no separate zeroing pass. The adaptive P2 of every
   pixel and direction is computed once (:func:`penalty_maps`) and shared by both passes.
 * Besides the integer winners the kernel returns, per pixel and view, the sums at the winner
@@ -39,7 +40,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from .sgm import DOWN_DIRECTIONS, GAP, INF, INT16_MAX, _min_packed, _penalty2
+from .sgm import DOWN_DIRECTIONS, GAP, INF, INT16_MAX, STRIPE_OVERLAP, STRIPES, _min_packed, _penalty2
 
 #: Sum value of a hypothesis outside a pixel's window in an expanded volume (:func:`expand_sums`).
 S_MAX = 65535
@@ -60,14 +61,15 @@ def _clear(out, olo: int, ohi: int, lo: int, hi: int, sentinel) -> None:
 
 
 @njit(cache=True, inline="always")
-def _step(c, mul, prev, pmin, p1, p2, out, olo: int, ohi: int, total, base, rlo: int, rhi: int, lo: int, hi: int,
-          sentinel, keep):
+def _step(c, mul, prev, pmin, p1, p2, out, olo: int, ohi: int, total, base, sbase, rlo: int, rhi: int, lo: int,
+          hi: int, sentinel, keep):
     # Eq. 13 on p's window [lo, hi). ``prev`` (the predecessor's path costs, indexed k + 2)
     # holds sentinels outside the predecessor's window, so hypotheses it does not reach take
     # the jump term (L = C + P2) in the same branch-free loop, which LLVM vectorises. The loop
     # runs over the run [rlo, rhi) ⊇ [lo, hi) (bounds on a coarse grid, so vector loops have
     # no odd tails) and stores the sentinel outside the window: the result is that of the
-    # window alone. The sums are kept (``keep`` = 0xFFFF) or overwritten (0) without a branch.
+    # window alone. The sums (at ``sbase``; the costs at ``base``) are kept (``keep`` = 0xFFFF)
+    # or overwritten (0) without a branch.
     mul16 = np.int16(mul)
     pm = np.int16(pmin)
     jump = np.int16(pmin + p2)
@@ -81,18 +83,18 @@ def _step(c, mul, prev, pmin, p1, p2, out, olo: int, ohi: int, total, base, rlo:
         v = np.int16(np.int16(min(min(same, near), jump) - pm) + np.int16(np.int16(c[base + d]) * mul16))
         v = v if ulo <= d < uhi else sentinel
         out[d + U2] = v
-        total[base + d] = np.uint16((total[base + d] & keep) + np.uint16(v))
+        total[sbase + d] = np.uint16((total[sbase + d] & keep) + np.uint16(v))
         m = min(m, v)
     _clear(out, olo, ohi, rlo, rhi, sentinel)
     return m
 
 
 @njit(cache=True, inline="always")
-def _start(c, mul, blank, p1, out, olo: int, ohi: int, total, base, rlo: int, rhi: int, lo: int, hi: int, sentinel,
-           keep):
+def _start(c, mul, blank, p1, out, olo: int, ohi: int, total, base, sbase, rlo: int, rhi: int, lo: int, hi: int,
+           sentinel, keep):
     # First pixel of a path, L_r(p, d) = C(p, d): a step from a predecessor that reaches
     # nothing (``blank``: all sentinels) with P2 = 0 and min 0.
-    return _step(c, mul, blank, 0, p1, 0, out, olo, ohi, total, base, rlo, rhi, lo, hi, sentinel, keep)
+    return _step(c, mul, blank, 0, p1, 0, out, olo, ohi, total, base, sbase, rlo, rhi, lo, hi, sentinel, keep)
 
 
 @njit(cache=True, inline="always")
@@ -117,15 +119,20 @@ def _put_costs(costs, y: int, x: int, c0, c1, c2) -> None:
 
 @njit(cache=True)
 def _pass_rows(cq, nd: int, mul, pens, total, offset, win_lo, win_hi, run_lo, run_hi, dirs, forward: bool, i0: int,
-               i1: int, fresh: bool, p1: int, lbuf, lslot, mins, hbuf, disp, disp_r, costs, costs_r, second, rbest,
-               min_disp: int) -> None:
+               i1: int, i_keep: int, fresh: bool, p1: int, lbuf, lslot, mins, hbuf, scratch, disp, disp_r, costs,
+               costs_r, second, rbest, min_disp: int) -> None:
     """Rows ``i0 ≤ i < i1`` (in pass order) of one raster pass (:func:`.sgm._pass_rows`, windowed).
+
+    The paths start at row ``i0``; rows before ``i_keep`` only warm up the paths from the rows
+    above (below): no horizontal path, their sums go to ``scratch`` (the longest row's runs,
+    uint16). From ``i_keep`` on, ``fresh`` (the forward pass) writes the sums, otherwise they
+    are added and the winners taken.
 
     ``cq`` holds the matching costs on the runs (ragged, the layout of ``total``), ``nd`` is D.
     ``pens`` (K + 1, H, W) int16: P2 per pixel and direction (:func:`penalty_maps`). ``total``
     is the flat uint16 sum array, ``offset`` (H, W) int64 each pixel's first entry,
     ``win_lo``/``win_hi`` (H, W) int32 its window and ``run_lo``/``run_hi`` the run of
-    hypotheses computed around it (sums are stored for the run). In the second phase the row's winners are
+    hypotheses computed around it (sums are stored for the run). In the backward pass the row's winners are
     taken (left, and right if ``disp_r`` is not empty) with their neighbouring sums in
     ``costs``/``costs_r`` (H, W, 3) float32 (``costs_r`` only if not empty) and, if ``second``
     is not empty, the best sum more than one hypothesis from the left winner. ``lslot`` (K, 3,
@@ -145,7 +152,7 @@ def _pass_rows(cq, nd: int, mul, pens, total, offset, win_lo, win_hi, run_lo, ru
     # Windows the two horizontal buffers hold (locals: per-thread arrays written every pixel
     # would share cache lines between the threads).
     h_lo0 = h_hi0 = h_lo1 = h_hi1 = 0
-    # In the first phase the horizontal path is the first to reach each pixel: it overwrites
+    # In the forward pass the horizontal path is the first to reach each pixel: it overwrites
     # the sums (no separate zeroing pass over them).
     hkeep = np.uint16(0) if fresh else np.uint16(0xFFFF)
     keep = np.uint16(0xFFFF)
@@ -157,8 +164,11 @@ def _pass_rows(cq, nd: int, mul, pens, total, offset, win_lo, win_hi, run_lo, ru
         rlo_row = run_lo[y]
         rhi_row = run_hi[y]
         off_row = offset[y]
+        kept = i >= i_keep
+        sums = total if kept else scratch
+        shift = np.uint64(0) if kept else np.uint64(off_row[0])  # a warm row's sums from scratch[0]
         hmin = 0
-        for j in range(w):
+        for j in range(w if kept else 0):
             x = j if forward else w - 1 - j
             lo = lo_row[x]
             hi = hi_row[x]
@@ -174,11 +184,11 @@ def _pass_rows(cq, nd: int, mul, pens, total, offset, win_lo, win_hi, run_lo, ru
                 h_lo1, h_hi1 = rlo, rhi
                 cur, prev = hbuf[1], hbuf[0]
             if j == 0:
-                hmin = _start(cq, mul, blank, p1, cur, olo, ohi, total, base, rlo, rhi, lo, hi, sentinel, hkeep)
+                hmin = _start(cq, mul, blank, p1, cur, olo, ohi, total, base, base, rlo, rhi, lo, hi, sentinel, hkeep)
             else:
                 # P2 between x and its predecessor x − s, stored at the right one of the two.
                 pen = pens[0, y, x] if forward else pens[0, y, x + 1]
-                hmin = _step(cq, mul, prev, hmin, p1, pen, cur, olo, ohi, total, base, rlo, rhi, lo, hi,
+                hmin = _step(cq, mul, prev, hmin, p1, pen, cur, olo, ohi, total, base, base, rlo, rhi, lo, hi,
                              sentinel, hkeep)
         for k in range(nk):
             ip = i - dirs[k, 0]
@@ -193,17 +203,17 @@ def _pass_rows(cq, nd: int, mul, pens, total, offset, win_lo, win_hi, run_lo, ru
                 base = np.uint64(off_row[x] - rlo)
                 olo = lslot[k, ring, x, 0]
                 ohi = lslot[k, ring, x, 1]
-                if ip < 0 or xp < 0 or xp >= w:
-                    mins[k, ring, x] = _start(cq, mul, blank, p1, lbuf[k, ring, x], olo, ohi, total, base, rlo,
-                                              rhi, lo, hi, sentinel, keep)
+                if ip < i0 or xp < 0 or xp >= w:
+                    mins[k, ring, x] = _start(cq, mul, blank, p1, lbuf[k, ring, x], olo, ohi, sums, base,
+                                              base - shift, rlo, rhi, lo, hi, sentinel, keep)
                 else:
                     pen = pens[k + 1, y, x] if forward else pens[k + 1, yp, xp]
                     mins[k, ring, x] = _step(cq, mul, lbuf[k, pr, xp], mins[k, pr, xp], p1, pen,
-                                             lbuf[k, ring, x], olo, ohi, total, base, rlo, rhi, lo, hi, sentinel,
-                                             keep)
+                                             lbuf[k, ring, x], olo, ohi, sums, base, base - shift, rlo, rhi, lo, hi,
+                                             sentinel, keep)
                 lslot[k, ring, x, 0] = rlo
                 lslot[k, ring, x, 1] = rhi
-        if fresh:
+        if fresh or not kept:
             continue
         # The row's sums are complete: winners among hypotheses inside the window whose right
         # pixel x − d lies inside the image, for both views in one pass over each window.
@@ -282,17 +292,23 @@ def penalty_maps(guide, dirs, p1: int, p2: int, gamma: float):
 @njit(cache=True, parallel=True)
 def sgm_window_two_pass(cq, nd: int, mul: int, pens, total, offset, win_lo, win_hi, run_lo, run_hi, dirs, p1: int,
                         min_disp: int, want_right: bool, want_second: bool, want_right_costs: bool):
-    """Both passes in two phases over the windows; returns ``(disp, disp_r, costs, costs_r,
-    second)`` (the right-view arrays, ``costs_r`` and ``second`` are empty when not wanted)."""
+    """Both passes per row stripe over the windows (the row stripes of :mod:`.sgm`); returns
+    ``(disp, disp_r, costs, costs_r, second)`` (the right-view arrays, ``costs_r`` and
+    ``second`` are empty when not wanted)."""
     h, w = win_lo.shape
     nk = dirs.shape[0]
-    split = h // 2
+    ns = STRIPES
     # Each thread's buffers end with spare elements (GAP: no cache line shared between threads).
-    lbuf = np.full((2, nk, 3, w + 1, nd + 4), INT16_MAX - p1, np.int16)
-    lslot = np.zeros((2, nk, 3, w + GAP, 2), np.int32)  # every buffer starts as all sentinels
-    hbuf = np.empty((2, 2, nd + 4 + GAP), np.int16)
-    mins = np.zeros((2, nk, 3, w + GAP), np.int16)
-    rbest = np.zeros((2, w + GAP if want_right else 0), np.uint32)
+    lbuf = np.full((ns, nk, 3, w + 1, nd + 4), INT16_MAX - p1, np.int16)
+    lslot = np.zeros((ns, nk, 3, w + GAP, 2), np.int32)  # every buffer starts as all sentinels
+    hbuf = np.empty((ns, 2, nd + 4 + GAP), np.int16)
+    mins = np.zeros((ns, nk, 3, w + GAP), np.int16)
+    longest = 0  # the most sums one row holds (a warm row's go to scratch)
+    for y in range(h):
+        end = offset[y + 1, 0] if y + 1 < h else total.shape[0]
+        longest = max(longest, end - offset[y, 0])
+    scratch = np.empty((ns, longest + GAP), np.uint16)
+    rbest = np.zeros((ns, w + GAP if want_right else 0), np.uint32)
     hr = h if want_right else 0
     wr = w if want_right else 0
     disp = np.empty((h, w), np.float32)
@@ -300,15 +316,21 @@ def sgm_window_two_pass(cq, nd: int, mul: int, pens, total, offset, win_lo, win_
     costs = np.empty((h, w, 3), np.float32)  # written wherever a winner is (only read there)
     costs_r = np.empty((hr if want_right_costs else 0, wr if want_right_costs else 0, 3), np.float32)
     second = np.zeros((h if want_second else 0, w if want_second else 0), np.float32)
-    for phase in range(2):
-        fresh = phase == 0
-        for t in prange(2):
-            forward = t == 0
-            first = split if forward else h - split
-            i0, i1 = (0, first) if fresh else (first, h)
+    for t in prange(ns):
+        y0 = t * h // ns
+        y1 = (t + 1) * h // ns
+        if y1 <= y0:
+            continue
+        top = max(0, y0 - STRIPE_OVERLAP)
+        bottom = min(h, y1 + STRIPE_OVERLAP)
+        for j in range(2):  # one call site with run-time arguments (see .sgm.sgm_two_pass)
+            forward = j == 0
+            i0 = top if forward else h - bottom
+            i1 = y1 if forward else h - y0
+            i_keep = y0 if forward else h - y1
             _pass_rows(cq, nd, mul, pens, total, offset, win_lo, win_hi, run_lo, run_hi, dirs, forward, i0, i1,
-                       fresh, p1, lbuf[t], lslot[t], mins[t], hbuf[t], disp, disp_r, costs, costs_r, second,
-                       rbest[t], min_disp)
+                       i_keep, forward, p1, lbuf[t], lslot[t], mins[t], hbuf[t], scratch[t], disp, disp_r, costs,
+                       costs_r, second, rbest[t], min_disp)
     return disp, disp_r, costs, costs_r, second
 
 

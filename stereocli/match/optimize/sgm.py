@@ -317,10 +317,10 @@ sgm.integer_volume_copies = 0.5
 
 
 def _buffer_bytes(p: SGMParams, width: int, ndisp: int) -> float:
-    """Path-cost row buffers of both passes: 3 rows × directions × (D + 2) int16 each (plus
-    their minima and penalties)."""
+    """Path-cost row buffers of each row stripe: 3 rows × directions × (D + 2) int16 (plus
+    their minima and penalties) and a scratch row of W·D uint16 sums for the warm-up rows."""
     nk = len(ks.DOWN_DIRECTIONS[p.paths])
-    return 2 * (3 * width * nk * (ndisp + 2) * 2 + 4 * width * nk * 3)
+    return ks.STRIPES * (3 * width * nk * (ndisp + 2) * 2 + 4 * width * nk * 3 + width * ndisp * 2)
 
 
 sgm.buffer_bytes = _buffer_bytes
