@@ -307,6 +307,22 @@ STRIPES = 2
 STRIPE_OVERLAP = 48
 
 
+@njit(cache=True, inline="always")
+def stripe_pass(stripe: int, j: int, h: int):
+    """Pass ``j`` (0: forward, 1: backward) of row stripe ``stripe`` of an image of ``h`` rows:
+    ``(forward, i0, i1, i_keep)``, rows in pass order (row ``i`` is ``y = i`` forward and
+    ``h − 1 − i`` backward). The pass starts ``STRIPE_OVERLAP`` rows beyond the stripe (at
+    ``i0``) and keeps sums from ``i_keep`` on; an empty stripe gives ``i0 = i1``."""
+    y0 = stripe * h // STRIPES
+    y1 = (stripe + 1) * h // STRIPES
+    forward = j == 0
+    if y1 <= y0:
+        return forward, 0, 0, 0
+    if forward:
+        return forward, max(0, y0 - STRIPE_OVERLAP), y1, y0
+    return forward, h - min(h, y1 + STRIPE_OVERLAP), h - y0, h - y1
+
+
 @njit(cache=True, parallel=True)
 def sgm_two_pass(cq, mul: int, guide, total, dirs, p1: int, p2: int, gamma: float, min_disp: int,
                  want_right: bool):
@@ -326,23 +342,14 @@ def sgm_two_pass(cq, mul: int, guide, total, dirs, p1: int, p2: int, gamma: floa
     disp = np.empty((h, w), np.float32)
     disp_r = np.empty((h if want_right else 0, w if want_right else 0), np.float32)  # rows set by the backward pass
     for t in prange(STRIPES):
-        # Rows [y0, y1): the forward pass from y0 − overlap writes their sums, the backward
-        # pass from y1 + overlap adds its own and takes the winners. Each thread works on its
-        # own rows throughout, which the later stages (parallel over rows, in the same
-        # halves) then read from the same core.
-        y0 = t * h // STRIPES
-        y1 = (t + 1) * h // STRIPES
-        if y1 <= y0:
-            continue
-        top = max(0, y0 - STRIPE_OVERLAP)
-        bottom = min(h, y1 + STRIPE_OVERLAP)
+        # The stripe's rows: the forward pass writes their sums, the backward pass adds its
+        # own and takes the winners (stripe_pass). Each thread works on its own rows
+        # throughout, which the later stages (parallel over rows, in the same halves) then
+        # read from the same core.
         for j in range(2):
             # One call site with run-time arguments: two calls with constant ones let LLVM
             # inline and specialise the row function, and the kernel ran 3x slower.
-            forward = j == 0
-            i0 = top if forward else h - bottom
-            i1 = y1 if forward else h - y0
-            i_keep = y0 if forward else h - y1
+            forward, i0, i1, i_keep = stripe_pass(t, j, h)
             _pass_rows(cq, mul, guide, total, dirs, forward, i0, i1, i_keep, forward, p1, p2, gamma,
                        lbuf[t], mins[t], hbuf[t], pens[t], scratch[t], disp, disp_r, rbest[t], min_disp)
     return disp, disp_r

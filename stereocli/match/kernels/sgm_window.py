@@ -40,7 +40,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from .sgm import DOWN_DIRECTIONS, GAP, INF, INT16_MAX, STRIPE_OVERLAP, STRIPES, _min_packed, _penalty2
+from .sgm import DOWN_DIRECTIONS, GAP, INF, INT16_MAX, STRIPES, _min_packed, _penalty2, stripe_pass
 
 #: Sum value of a hypothesis outside a pixel's window in an expanded volume (:func:`expand_sums`).
 S_MAX = 65535
@@ -317,17 +317,8 @@ def sgm_window_two_pass(cq, nd: int, mul: int, pens, total, offset, win_lo, win_
     costs_r = np.empty((hr if want_right_costs else 0, wr if want_right_costs else 0, 3), np.float32)
     second = np.zeros((h if want_second else 0, w if want_second else 0), np.float32)
     for t in prange(ns):
-        y0 = t * h // ns
-        y1 = (t + 1) * h // ns
-        if y1 <= y0:
-            continue
-        top = max(0, y0 - STRIPE_OVERLAP)
-        bottom = min(h, y1 + STRIPE_OVERLAP)
         for j in range(2):  # one call site with run-time arguments (see .sgm.sgm_two_pass)
-            forward = j == 0
-            i0 = top if forward else h - bottom
-            i1 = y1 if forward else h - y0
-            i_keep = y0 if forward else h - y1
+            forward, i0, i1, i_keep = stripe_pass(t, j, h)
             _pass_rows(cq, nd, mul, pens, total, offset, win_lo, win_hi, run_lo, run_hi, dirs, forward, i0, i1,
                        i_keep, forward, p1, lbuf[t], lslot[t], mins[t], hbuf[t], scratch[t], disp, disp_r, costs,
                        costs_r, second, rbest[t], min_disp)
