@@ -130,20 +130,27 @@ def test_sgm_row_stripes_equal_whole_image_passes(height):
     assert np.mean(disp[inside] == truth[inside]) > 0.95
 
 
-def test_sgm_deterministic_across_thread_counts():
+def on_one_and_two_threads(run):
+    """``[run(), run()]`` with numba on one thread, then on two (where available); the
+    thread count is restored afterwards."""
     import numba
 
+    old = numba.get_num_threads()
+    results = []
+    try:
+        for threads in (1, min(2, numba.config.NUMBA_NUM_THREADS)):
+            numba.set_num_threads(threads)
+            results.append(run())
+    finally:
+        numba.set_num_threads(old)
+    return results
+
+
+def test_sgm_deterministic_across_thread_counts():
     rng = np.random.default_rng(9)
     # Taller than two stripes and their overlaps, so the seam rows take truncated paths.
     cq = rng.integers(0, 255, (130, 70, 23)).astype(np.uint8)
     guide = rng.random((130, 70)).astype(np.float32) * 255
-    old = numba.get_num_threads()
-    try:
-        numba.set_num_threads(1)
-        a = ks.sgm_aggregate(cq, guide, 8, 20, 200, 16.0, 0, True)
-        numba.set_num_threads(min(2, numba.config.NUMBA_NUM_THREADS))
-        b = ks.sgm_aggregate(cq, guide, 8, 20, 200, 16.0, 0, True)
-    finally:
-        numba.set_num_threads(old)
+    a, b = on_one_and_two_threads(lambda: ks.sgm_aggregate(cq, guide, 8, 20, 200, 16.0, 0, True))
     for x, y in zip(a, b):
         np.testing.assert_array_equal(x, y)

@@ -11,6 +11,7 @@ from stereocli.config import build_config
 from stereocli.match.pipeline import match_pair
 from stereocli.match.refine_segment import PlaneFitParams, fit_segment_planes, segment_image
 from stereocli.match.state import MatchState
+from test_kernels_sgm import on_one_and_two_threads
 
 A, B, C = 0.06, 0.03, 6.0  # slanted plane d = A·x + B·y + C (left-referenced)
 
@@ -173,6 +174,15 @@ def local_consistency_reference(disp, left, right, min_disp, ndisp, radius, gamm
     return out
 
 
+def _two_surface_problem(rng, h: int, w: int, split: int):
+    # Random 8-bit-valued colour images (the kernel's colour tables are exact there) and noisy
+    # disparities of two surfaces, 2-4 px up to column ``split`` and 7-9 px beyond it.
+    left = rng.integers(0, 256, (h, w, 3)).astype(np.float32)
+    right = rng.integers(0, 256, (h, w, 3)).astype(np.float32)
+    disp = (rng.uniform(2, 4, (h, w)) + np.where(np.arange(w) > split, 5.0, 0.0)).astype(np.float32)
+    return left, right, disp
+
+
 def test_local_consistency_kernel_matches_reference_on_random_maps():
     # 8-bit-valued colour images (the kernel's colour tables are exact there), noisy disparities
     # with holes and two surfaces.
@@ -180,9 +190,7 @@ def test_local_consistency_kernel_matches_reference_on_random_maps():
 
     rng = np.random.default_rng(11)
     h, w = 16, 21
-    left = rng.integers(0, 256, (h, w, 3)).astype(np.float32)
-    right = rng.integers(0, 256, (h, w, 3)).astype(np.float32)
-    disp = (rng.uniform(2, 4, (h, w)) + np.where(np.arange(w) > 10, 5.0, 0.0)).astype(np.float32)
+    left, right, disp = _two_surface_problem(rng, h, w, 10)
     disp[rng.random((h, w)) < 0.1] = np.inf
     got, _ = ks.local_consistency(disp, left, right, 0, 12, 3, 3.0, 12.0, 12.0, False, np.ones(disp.shape, bool))
     want = local_consistency_reference(disp, left, right, 0, 12, 3, 3.0, 12.0, 12.0)
@@ -357,9 +365,7 @@ def test_square_local_consistency_without_right_term_matches_reference():
 
     rng = np.random.default_rng(8)
     h, w = 14, 19
-    left = rng.integers(0, 256, (h, w, 3)).astype(np.float32)
-    right = rng.integers(0, 256, (h, w, 3)).astype(np.float32)
-    disp = (rng.uniform(2, 4, (h, w)) + np.where(np.arange(w) > 9, 5.0, 0.0)).astype(np.float32)
+    left, right, disp = _two_surface_problem(rng, h, w, 9)
     state = MatchState(left, right, 0, 12)
     state.disparity = disp.copy()
     local_consistency(state, LocalConsistencyParams(radius=3, gamma_s=3.0, right=False))
@@ -370,8 +376,6 @@ def test_square_local_consistency_without_right_term_matches_reference():
 
 
 def test_separable_local_consistency_is_deterministic_across_thread_counts():
-    import numba
-
     from stereocli.match.refine_segment import LocalConsistencyParams, local_consistency
 
     rng = np.random.default_rng(4)
@@ -380,17 +384,14 @@ def test_separable_local_consistency_is_deterministic_across_thread_counts():
     right = rng.integers(0, 256, (h, w, 3)).astype(np.float32)
     disp = (rng.uniform(0, 3, (h, w)) + np.where((np.arange(w) // 15) % 2 == 1, 8.0, 0.0)).astype(np.float32)
     p = LocalConsistencyParams(separable=True, radius=8, gamma_s=8.0, band=3, min_change=2)
-    results = []
-    old = numba.get_num_threads()
-    try:
-        for threads in (1, min(2, numba.config.NUMBA_NUM_THREADS)):
-            numba.set_num_threads(threads)
-            state = MatchState(left, right, 0, 16)
-            state.disparity = disp.copy()
-            local_consistency(state, p)
-            results.append((state.disparity, state.confidence))
-    finally:
-        numba.set_num_threads(old)
+
+    def run():
+        state = MatchState(left, right, 0, 16)
+        state.disparity = disp.copy()
+        local_consistency(state, p)
+        return state.disparity, state.confidence
+
+    results = on_one_and_two_threads(run)
     np.testing.assert_array_equal(results[0][0], results[1][0])
     np.testing.assert_array_equal(results[0][1], results[1][1])
     assert not np.array_equal(results[0][0], disp)
@@ -483,8 +484,6 @@ def test_geodesic_vote_moves_fattened_edges_and_keeps_slants():
 
 
 def test_geodesic_vote_is_deterministic_across_thread_counts():
-    import numba
-
     from stereocli.match.refine_segment import GeodesicVoteParams, geodesic_vote
 
     # Stripes of two colours with disparity edges 2 px off the colour edges, plus noise.
@@ -494,16 +493,13 @@ def test_geodesic_vote_is_deterministic_across_thread_counts():
     image = np.where(stripe[None, :, None], 180.0, 70.0) + rng.normal(0, 4, (h, w, 3))
     image = image.astype(np.float32)
     disp = (rng.uniform(0, 0.8, (h, w)) + np.where(np.roll(stripe, 2), 9.0, 2.0)).astype(np.float32)
-    results = []
-    old = numba.get_num_threads()
-    try:
-        for threads in (1, min(2, numba.config.NUMBA_NUM_THREADS)):
-            numba.set_num_threads(threads)
-            state = MatchState(image, image, 0, 16)
-            state.disparity = disp.copy()
-            geodesic_vote(state, GeodesicVoteParams())
-            results.append(state.disparity)
-    finally:
-        numba.set_num_threads(old)
+
+    def run():
+        state = MatchState(image, image, 0, 16)
+        state.disparity = disp.copy()
+        geodesic_vote(state, GeodesicVoteParams())
+        return state.disparity
+
+    results = on_one_and_two_threads(run)
     np.testing.assert_array_equal(results[0], results[1])
     assert not np.array_equal(results[0], disp)

@@ -626,6 +626,13 @@ def _running_add(kk, mm, ss, n: int, last: int, k: int, m: float, s: float):
 
 
 @njit(cache=True, inline="always")
+def _empty_vote():
+    # A running vote with no votes yet: ``(n, last, scale, run_k, run_m, run_s)`` (no kept
+    # bins, no run, stored values equal to true ones).
+    return 0, 0, 1.0, -1, 0.0, 0.0
+
+
+@njit(cache=True, inline="always")
 def _decay_vote(mm, ss, n: int, scale: float, run_m: float, run_s: float, weight: float):
     """One step along the line: every vote so far is multiplied by ``weight`` — the run's true
     values directly, the kept bins through ``scale`` (folded back into them when it gets tiny).
@@ -724,12 +731,7 @@ def geodesic_vote_line(disp, bins, packed, centre, passed, min_change: int, max_
             # current run of one bin is kept in true values (decayed by one multiply-add per
             # pixel); the other bins in stored values, true = stored × scale, so decaying them
             # is one multiplication of ``scale``.
-            n = 0
-            last = 0
-            scale = 1.0
-            run_k = -1
-            run_m = 0.0
-            run_s = 0.0
+            n, last, scale, run_k, run_m, run_s = _empty_vote()
             ci = 0
             for p in range(n_pos):
                 if p > 0:
@@ -752,12 +754,7 @@ def geodesic_vote_line(disp, bins, packed, centre, passed, min_change: int, max_
                     d = disp[p, line] if vertical else disp[line, p]
                     n, last, run_k, run_m, run_s = _add_vote(kk, mm, ss, n, last, scale, run_k, run_m, run_s, k, d)
             # Backward, deciding each centre from its own vote and both running votes.
-            n = 0
-            last = 0
-            scale = 1.0
-            run_k = -1
-            run_m = 0.0
-            run_s = 0.0
+            n, last, scale, run_k, run_m, run_s = _empty_vote()
             ci = n_centres - 1
             for p in range(n_pos - 1, -1, -1):
                 if p < n_pos - 1:
