@@ -30,7 +30,8 @@ Layout and numerics (see ``tests/test_kernels_sgm.py`` for the pure-numpy refere
   later stages, parallel over rows in the same halves, read from the same core. (Until
   session 9 both passes ran over the whole image, in two phases with the threads swapping
   halves: as fast in the VM's usual state, but in its slow minutes, when data written on one
-  core took twice as long to reach the other, the Tsukuba pair took about 0.4 ms longer.)
+  core took twice as long to reach the other, Tsukuba took 1.91× SGBM 3WAY's time against
+  1.61× with the stripes; README.)
 * The stripe plan does not depend on the thread count, and every element is computed by one
   thread with integer arithmetic in a fixed order, so the result is bit-identical for any
   thread count.
@@ -157,10 +158,11 @@ def _min_packed(s, base, k0: int, k1: int, rbest, rb, want_right: bool) -> np.ui
 
 
 @njit(cache=True)
-def _horizontal_row(cf, mul, guide, y: int, forward: bool, fresh: bool, p1: int, p2: int, gamma: float, hf, hrow,
-                    pens, tf, w: int, und) -> None:
+def _horizontal_row(cf, mul, guide, y: int, forward: bool, p1: int, p2: int, gamma: float, hf, hrow, pens, tf,
+                    w: int, und) -> None:
     """The horizontal path of row ``y`` (from the left, or the right when not ``forward``):
-    writes its costs into the row's sums (``fresh``) or adds them. ``hf`` holds two buffers of
+    writes its costs into the row's sums (the forward pass, the first to reach them) or adds
+    them (the backward pass). ``hf`` holds two buffers of
     ``hrow`` int16 used in turn; the penalties go to ``pens``. (The row's paths are small
     functions of their own rather than loops inside :func:`_pass_rows`: there LLVM kept their
     state on the stack, and the kernel took 1.5× as long on Tsukuba's D = 16.)"""
@@ -173,13 +175,13 @@ def _horizontal_row(cf, mul, guide, y: int, forward: bool, fresh: bool, p1: int,
     mul16 = np.int16(mul)
     first = 0 if forward else w - 1
     pix = (row + np.uint64(first)) * und
-    hmin = _start(cf, pix, und, mul, hf, np.uint64(0), tf, pix, not fresh)
+    hmin = _start(cf, pix, und, mul, hf, np.uint64(0), tf, pix, not forward)
     for j in range(1, w):
         x = j if forward else w - 1 - j
         pix = (row + np.uint64(x)) * und
         pm = np.int16(hmin)
         hmin = _step(cf, pix, und, mul16, hf, np.uint64((j + 1) % 2) * hrow, pm, np.int16(pm + pens[x]), pp1,
-                     np.uint64(j % 2) * hrow, tf, pix, not fresh)
+                     np.uint64(j % 2) * hrow, tf, pix, not forward)
 
 
 @njit(cache=True)
@@ -218,7 +220,7 @@ def _direction_row(cf, mul, lf, tf, mins, pens, k: int, ring: int, ip: int, pr: 
 
 
 @njit(cache=True)
-def _pass_rows(cq, mul, guide, total, dirs, forward: bool, i0: int, i1: int, i_keep: int, fresh: bool,
+def _pass_rows(cq, mul, guide, total, dirs, forward: bool, i0: int, i1: int, i_keep: int,
                p1: int, p2: int, gamma: float, lbuf, mins, hbuf, pens, scratch,
                disp, disp_r, rbest, min_disp: int) -> None:
     """Rows ``i0 ≤ i < i1`` (in pass order) of one raster pass; see the module docstring.
@@ -227,9 +229,9 @@ def _pass_rows(cq, mul, guide, total, dirs, forward: bool, i0: int, i1: int, i_k
     (y, x − 1) for the horizontal path and (y − dy, x − dx) for the others; backward is the
     mirror image. The paths start at row ``i0``. Rows before ``i_keep`` only warm the paths
     from the rows above (below) up: their sums go to ``scratch`` (one row, W·D uint16) and
-    there is no horizontal path. From ``i_keep`` on, ``fresh``: write this pass's path sums
-    into ``total`` (the forward pass) or add them and take the winners (the backward pass;
-    ``disp``/``disp_r`` are written there).
+    there is no horizontal path. From ``i_keep`` on, the forward pass writes its path sums
+    into ``total``, the backward pass adds its own and takes the winners (``disp``/``disp_r``
+    are written there).
     ``lbuf`` (K, 3, W + 1, D + 2) int16, ``mins`` (K, 3, W) int16, ``hbuf`` (2, D + 2) int16 and
     ``pens`` (K + 1, W) int32 (each possibly longer: ``GAP``) carry the pass's state from one
     call to the next; ``rbest`` (W,) uint32 is scratch for the right view. ``cq``, ``total``,
@@ -264,13 +266,13 @@ def _pass_rows(cq, mul, guide, total, dirs, forward: bool, i0: int, i1: int, i_k
         kept = i >= i_keep
         if kept:
             # The horizontal path writes the row's sums in the forward pass; every other path adds to them.
-            _horizontal_row(cf, mul, guide, y, forward, fresh, p1, p2, gamma, hf, hrow, pens[0], tf, w, und)
+            _horizontal_row(cf, mul, guide, y, forward, p1, p2, gamma, hf, hrow, pens[0], tf, w, und)
         for k in range(nk):
             ip = i - dirs[k, 0]
             _direction_row(cf, mul, lf, tf if kept else sf, mins, pens, k, ring, ip, ip % 3, s * dirs[k, 1], row0,
                            row0 if kept else np.uint64(0), w, und, lrow, np.uint64(k * 3 + ring) * lplane,
                            np.uint64(k * 3 + ip % 3) * lplane, p1, i0)
-        if kept and not fresh:
+        if kept and not forward:
             # The row's sums are complete: left WTA among hypotheses whose right pixel x − d
             # lies inside the image, and the right view (Hirschmüller 2008 §2.5, same volume:
             # right pixel xr takes the d minimising S[y, xr + d, d]) in the same pass: each left
@@ -350,7 +352,7 @@ def sgm_two_pass(cq, mul: int, guide, total, dirs, p1: int, p2: int, gamma: floa
             # One call site with run-time arguments: two calls with constant ones let LLVM
             # inline and specialise the row function, and the kernel ran 3x slower.
             forward, i0, i1, i_keep = stripe_pass(t, j, h)
-            _pass_rows(cq, mul, guide, total, dirs, forward, i0, i1, i_keep, forward, p1, p2, gamma,
+            _pass_rows(cq, mul, guide, total, dirs, forward, i0, i1, i_keep, p1, p2, gamma,
                        lbuf[t], mins[t], hbuf[t], pens[t], scratch[t], disp, disp_r, rbest[t], min_disp)
     return disp, disp_r
 

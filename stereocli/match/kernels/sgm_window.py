@@ -119,14 +119,14 @@ def _put_costs(costs, y: int, x: int, c0, c1, c2) -> None:
 
 @njit(cache=True)
 def _pass_rows(cq, nd: int, mul, pens, total, offset, win_lo, win_hi, run_lo, run_hi, dirs, forward: bool, i0: int,
-               i1: int, i_keep: int, fresh: bool, p1: int, lbuf, lslot, mins, hbuf, scratch, disp, disp_r, costs,
+               i1: int, i_keep: int, p1: int, lbuf, lslot, mins, hbuf, scratch, disp, disp_r, costs,
                costs_r, second, rbest, min_disp: int) -> None:
     """Rows ``i0 ≤ i < i1`` (in pass order) of one raster pass (:func:`.sgm._pass_rows`, windowed).
 
     The paths start at row ``i0``; rows before ``i_keep`` only warm up the paths from the rows
     above (below): no horizontal path, their sums go to ``scratch`` (the longest row's runs,
-    uint16). From ``i_keep`` on, ``fresh`` (the forward pass) writes the sums, otherwise they
-    are added and the winners taken.
+    uint16). From ``i_keep`` on, the forward pass writes the sums, the backward pass adds its
+    own and takes the winners.
 
     ``cq`` holds the matching costs on the runs (ragged, the layout of ``total``), ``nd`` is D.
     ``pens`` (K + 1, H, W) int16: P2 per pixel and direction (:func:`penalty_maps`). ``total``
@@ -154,7 +154,7 @@ def _pass_rows(cq, nd: int, mul, pens, total, offset, win_lo, win_hi, run_lo, ru
     h_lo0 = h_hi0 = h_lo1 = h_hi1 = 0
     # In the forward pass the horizontal path is the first to reach each pixel: it overwrites
     # the sums (no separate zeroing pass over them).
-    hkeep = np.uint16(0) if fresh else np.uint16(0xFFFF)
+    hkeep = np.uint16(0) if forward else np.uint16(0xFFFF)
     keep = np.uint16(0xFFFF)
     for i in range(i0, i1):
         y = i if forward else h - 1 - i
@@ -213,7 +213,7 @@ def _pass_rows(cq, nd: int, mul, pens, total, offset, win_lo, win_hi, run_lo, ru
                                              sentinel, keep)
                 lslot[k, ring, x, 0] = rlo
                 lslot[k, ring, x, 1] = rhi
-        if fresh or not kept:
+        if forward or not kept:
             continue
         # The row's sums are complete: winners among hypotheses inside the window whose right
         # pixel x − d lies inside the image, for both views in one pass over each window.
@@ -320,7 +320,7 @@ def sgm_window_two_pass(cq, nd: int, mul: int, pens, total, offset, win_lo, win_
         for j in range(2):  # one call site with run-time arguments (see .sgm.sgm_two_pass)
             forward, i0, i1, i_keep = stripe_pass(t, j, h)
             _pass_rows(cq, nd, mul, pens, total, offset, win_lo, win_hi, run_lo, run_hi, dirs, forward, i0, i1,
-                       i_keep, forward, p1, lbuf[t], lslot[t], mins[t], hbuf[t], scratch[t], disp, disp_r, costs,
+                       i_keep, p1, lbuf[t], lslot[t], mins[t], hbuf[t], scratch[t], disp, disp_r, costs,
                        costs_r, second, rbest[t], min_disp)
     return disp, disp_r, costs, costs_r, second
 
