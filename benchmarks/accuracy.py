@@ -18,7 +18,7 @@ Scoring rules (stated again in the table header):
   disparity ranges of the SGM paper (16, 32, 64, 64).
 Timing: every method runs once to warm up (numba compilation, OpenCV allocations), then the
 methods take turns for ``--repeat`` rounds (A, B, A, B, ...: a machine that slows down for a
-while, as shared VMs do for minutes at a time, slows every method alike) and each keeps its
+while, as shared machines do, slows every method alike) and each keeps its
 best run. Ratios to SGBM 3WAY are measured in the same process and rounds, so they survive a
 noisy machine better than absolute seconds. (Pandora, a subprocess of seconds, runs once.)
 """
@@ -41,11 +41,14 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from stereocli.config import build_config  # noqa: E402
+from stereocli.match.config import build_config  # noqa: E402
 from stereocli.evaluate.api import EvalOptions, evaluate_pair, weighted_average  # noqa: E402
 from stereocli.evaluate.datasets import load_scene  # noqa: E402
 from stereocli.io.images import read_image  # noqa: E402
 from stereocli.match.pipeline import match_pair  # noqa: E402
+from stereocli.process import keep_freed_memory  # noqa: E402
+
+keep_freed_memory()  # as the command line does: freed buffers stay in the process between pairs
 
 DEFAULT_DATA = REPO.parent / "shared" / "data"
 #: v2 scenes: (folder, left, right, ndisp) with the disparity ranges used by the SGM paper.

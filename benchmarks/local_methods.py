@@ -38,11 +38,14 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from stereocli.config import validate  # noqa: E402
+from stereocli.match.config import validate  # noqa: E402
 from stereocli.evaluate.datasets import load_middlebury_v2  # noqa: E402
 from stereocli.evaluate.metrics import middlebury_stats  # noqa: E402
 from stereocli.io.images import read_image  # noqa: E402
 from stereocli.match.pipeline import match_pair  # noqa: E402
+from stereocli.process import keep_freed_memory  # noqa: E402
+
+keep_freed_memory()  # as the command line does: freed buffers stay in the process between pairs
 
 DATA = REPO.parent / "shared" / "data"
 SCENES = {  # name: (folder, left, right)
@@ -71,7 +74,7 @@ METHODS = {
     "guided_filter": ({"name": "color_gradient"}, [{"name": "guided_filter", "right_view": "guided"}],
                       (1.51, 0.20, 6.16, 2.71)),
 }
-#: WTA → sub-pixel → LR check → hole filling (→ median → sub-pixel smoothing), as issue #6 asks.
+#: WTA → sub-pixel → LR check → hole filling (→ median → sub-pixel smoothing).
 #: ``subpixel`` needs the cost volume, so the pipeline runs it before the map stages; the LR
 #: check still decides on the integer WTA winners (``compare: integer``, kept by the pipeline
 #: before the sub-pixel fit), and on integers the papers' test is exact agreement (max_diff 0):

@@ -55,9 +55,9 @@ def make_pairs(root: Path, n: int, size: tuple[int, int], distinct: int = 4) -> 
 
 
 def plan(data: Path, out: Path, config_args: list[str], sets: list[str], ndisp: int | None = None, **opts):
-    from stereocli.config import build_config
     from stereocli.io.pairs import discover_pairs
-    from stereocli.match.run import plan_items
+    from stereocli.jobs.match import plan_items
+    from stereocli.match.config import build_config
 
     pairs, _ = discover_pairs([str(data)])
     items = plan_items(pairs, out, config=build_config(config_args, sets).as_dict(), ndisp=ndisp, min_disp=None)
@@ -67,8 +67,8 @@ def plan(data: Path, out: Path, config_args: list[str], sets: list[str], ndisp: 
 
 
 def timed_batch(items, **kwargs) -> float:
-    from stereocli.batch import run_batch
-    from stereocli.match.run import match_item
+    from stereocli.jobs.executors import run_batch
+    from stereocli.jobs.match import match_item
 
     t0 = time.perf_counter()
     result = run_batch(items, match_item, progress=False, **kwargs)

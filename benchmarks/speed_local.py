@@ -30,10 +30,13 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from stereocli.config import build_config, validate  # noqa: E402
+from stereocli.match.config import build_config, validate  # noqa: E402
 from stereocli.io.images import read_image  # noqa: E402
 from stereocli.match import pipeline  # noqa: E402
 from stereocli.match.pipeline import match_pair  # noqa: E402
+from stereocli.process import keep_freed_memory  # noqa: E402
+
+keep_freed_memory()  # as the command line does: freed buffers stay in the process between pairs
 
 DATA = REPO.parent / "shared" / "data"
 

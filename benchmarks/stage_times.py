@@ -30,8 +30,11 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "benchmarks"))
 
 from accuracy import DEFAULT_DATA, TURN_GAP_S, load_scenes, run_opencv  # noqa: E402
-from stereocli.config import build_config  # noqa: E402
+from stereocli.match.config import build_config  # noqa: E402
 from stereocli.match.pipeline import match_pair  # noqa: E402
+from stereocli.process import keep_freed_memory  # noqa: E402
+
+keep_freed_memory()  # as the command line does: freed buffers stay in the process between pairs
 
 
 def stage_label(key: str) -> str:

@@ -1,4 +1,4 @@
-"""Matching configuration: YAML presets, ``--set`` overrides, validation, the effective config.
+"""Configuration files: bundled presets, YAML loading with limits, layering and ``--set``.
 
 A config has one section per pipeline stage plus ``runtime``::
 
@@ -13,24 +13,19 @@ Precedence: the ``default`` preset < ``--config FILE`` < ``--set section.key=val
 higher layer names a different stage for a section, the lower layer's parameters for that
 section are dropped (they belonged to the other stage). Lists (``refinement``) are replaced
 whole; ``--set refinement.lr_check.max_diff=2`` edits the listed stage of that name.
-Every unknown section, stage or key, wrong type or out-of-range value raises
-:class:`ConfigError` naming the file and the key, with the valid choices and close matches.
+This module works on plain dicts; :mod:`stereocli.match.config` resolves the stages and
+validates their parameters.
 """
 
 from __future__ import annotations
 
 import copy
-import dataclasses
-import difflib
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import yaml
 
-from . import registry
-from .errors import ConfigError
-from .registry import Stage, param
+from .errors import ConfigError, did_you_mean
 
 SINGLE_SECTIONS = ("cost", "optimizer")
 LIST_SECTIONS = ("preprocess", "aggregation", "refinement")
@@ -38,61 +33,8 @@ STAGE_SECTIONS = ("preprocess", "cost", "aggregation", "optimizer", "refinement"
 SECTIONS = STAGE_SECTIONS + ("runtime",)
 
 
-@dataclass(frozen=True)
-class RuntimeParams:
-    """Resources and numerics of a run (not stages)."""
-
-    memory_gb: float = param(8.0, "peak memory budget for one pair; larger jobs run in row strips or are refused", unit="GiB", low=0.1, high=1024)
-    strip_rows: int = param(0, "rows per strip (0 = whole image when it fits the budget, else automatic)", unit="rows", low=0, high=100000)
-    strip_overlap: int = param(48, "extra rows above and below each strip so paths and windows see context", unit="rows", low=0, high=4096)
-    threads: int = param(0, "compiled-kernel threads (0 = all cores); output does not depend on it", low=0, high=1024)
-
-
-@dataclass
-class StageCall:
-    """A stage with validated parameters, as it will run."""
-
-    stage: Stage
-    params: Any
-
-    def as_dict(self) -> dict:
-        return {"name": self.stage.name, **_plain(dataclasses.asdict(self.params))}
-
-
-@dataclass
-class PipelineConfig:
-    """The validated effective configuration."""
-
-    preprocess: list[StageCall]
-    cost: StageCall
-    aggregation: list[StageCall]
-    optimizer: StageCall
-    refinement: list[StageCall]
-    runtime: RuntimeParams = field(default_factory=RuntimeParams)
-    sources: list[str] = field(default_factory=list)
-
-    def as_dict(self) -> dict:
-        """The effective config with every parameter spelled out (what the run record stores)."""
-        return {
-            "preprocess": [c.as_dict() for c in self.preprocess],
-            "cost": self.cost.as_dict(),
-            "aggregation": [c.as_dict() for c in self.aggregation],
-            "optimizer": self.optimizer.as_dict(),
-            "refinement": [c.as_dict() for c in self.refinement],
-            "runtime": _plain(dataclasses.asdict(self.runtime)),
-        }
-
-    def to_yaml(self) -> str:
-        return yaml.safe_dump(self.as_dict(), sort_keys=False, default_flow_style=None)
-
-
-def _plain(obj: Any) -> Any:
-    """Tuples to lists so YAML/JSON dumps stay plain."""
-    if isinstance(obj, dict):
-        return {k: _plain(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_plain(v) for v in obj]
-    return obj
+def _suggest(word: str, options) -> str:
+    return did_you_mean(word, options) + f"; valid: {', '.join(sorted(map(str, options)))}" if options else ""
 
 
 # --- presets and files -----------------------------------------------------------------
@@ -121,7 +63,7 @@ def resolve_config_path(name_or_path: str) -> Path:
     names = preset_names()
     raise ConfigError(
         f"{name_or_path}: no such config file or preset; presets: {', '.join(names)}"
-        + registry._close(name_or_path, names)
+        + did_you_mean(name_or_path, names)
     )
 
 
@@ -169,7 +111,7 @@ def merge_layer(base: dict, layer: dict, source: str) -> dict:
     for section, value in layer.items():
         if section not in SECTIONS:
             raise ConfigError(
-                f"{source}: {section}: unknown section" + registry._suggest(str(section), list(SECTIONS))
+                f"{source}: {section}: unknown section" + _suggest(str(section), list(SECTIONS))
             )
         where = f"{source}: {section}"
         if section == "runtime":
@@ -210,7 +152,7 @@ def apply_set(config: dict, assignment: str) -> dict:
     section = parts[0]
     where = f"--set {assignment}"
     if section not in SECTIONS:
-        raise ConfigError(f"{where}: unknown section {section!r}" + registry._suggest(section, list(SECTIONS)))
+        raise ConfigError(f"{where}: unknown section {section!r}" + _suggest(section, list(SECTIONS)))
     out = copy.deepcopy(config)
     if section in LIST_SECTIONS:
         stages_ = out.setdefault(section, [])
@@ -227,7 +169,7 @@ def apply_set(config: dict, assignment: str) -> dict:
             if not matches:
                 listed = [s.get("name") for s in stages_]
                 raise ConfigError(
-                    f"{where}: no stage {target!r} in {section}" + registry._suggest(target, listed)
+                    f"{where}: no stage {target!r} in {section}" + _suggest(target, listed)
                 )
             entry = matches[0]
         entry[key] = value
@@ -242,63 +184,3 @@ def apply_set(config: dict, assignment: str) -> dict:
     else:
         out.setdefault(section, {})[key] = value
     return out
-
-
-# --- validation -----------------------------------------------------------------------------
-
-
-def _stage_call(kind: str, entry: dict, source: str, section: str) -> StageCall:
-    stage = registry.get(kind, str(entry.get("name")), source=source, section=section)
-    params = stage.make_params(entry, source=source, section=section)
-    return StageCall(stage, params)
-
-
-def validate(config: dict, source: str = "<config>") -> PipelineConfig:
-    """Resolve every stage by name and validate its parameters."""
-    for section in ("cost", "optimizer"):
-        if section not in config:
-            raise ConfigError(f"{source}: missing section {section!r}")
-    pre = [_stage_call("preprocess", e, source, f"preprocess.{e.get('name')}") for e in config.get("preprocess", [])]
-    cost = _stage_call("cost", config["cost"], source, "cost")
-    agg = [_stage_call("aggregation", e, source, f"aggregation.{e.get('name')}") for e in config.get("aggregation", [])]
-    opt = _stage_call("optimizer", config["optimizer"], source, "optimizer")
-    ref = [_stage_call("refinement", e, source, f"refinement.{e.get('name')}") for e in config.get("refinement", [])]
-    seen_map_stage = None
-    for call in ref:
-        if call.stage.needs_cost and seen_map_stage:
-            raise ConfigError(
-                f"{source}: refinement: {call.stage.name!r} reads the cost volume and must come before "
-                f"{seen_map_stage!r} (stages that only edit the disparity map run after the volume is dropped)"
-            )
-        if not call.stage.needs_cost:
-            seen_map_stage = call.stage.name
-    runtime_stage = Stage("runtime", "runtime", lambda *a: None, RuntimeParams, "", "")
-    runtime = runtime_stage.make_params(config.get("runtime", {}), source=source, section="runtime")
-    return PipelineConfig(pre, cost, agg, opt, ref, runtime)
-
-
-def build_config(config_files: list[str] | tuple[str, ...] = (), sets: list[str] | tuple[str, ...] = ()) -> PipelineConfig:
-    """Defaults < each ``--config`` file in order < each ``--set``; validated.
-
-    Errors name the layer they come from (the file, or the ``--set`` assignment).
-    """
-    default_path = preset_dir() / "default.yaml"
-    merged = merge_layer({}, load_yaml(default_path), str(default_path))
-    sources = [str(default_path)]
-    for name in config_files:
-        path = resolve_config_path(name)
-        merged = merge_layer(merged, load_yaml(path), str(path))
-        sources.append(str(path))
-        # Validate after each file so an error names the file that introduced it.
-        validate(merged, str(path))
-    for assignment in sets:
-        merged = apply_set(merged, assignment)
-        validate(merged, f"--set {assignment}")
-        sources.append(f"--set {assignment}")
-    result = validate(merged, sources[-1])
-    result.sources = sources
-    return result
-
-
-def close_matches(word: str, options: list[str]) -> list[str]:
-    return difflib.get_close_matches(word, options, n=3, cutoff=0.5)

@@ -6,6 +6,9 @@ code (no traceback unless ``-vv``).
 
 from __future__ import annotations
 
+import difflib
+from typing import Iterable
+
 EXIT_OK = 0
 EXIT_DATA = 1  # unreadable input, runtime failure
 EXIT_USAGE = 2  # bad command line or configuration
@@ -38,3 +41,28 @@ class OutputExistsError(StereoError):
 
 class MemoryBudgetError(ConfigError):
     """The requested setting cannot fit in the memory budget (exit 2)."""
+
+
+def close_matches(word: str, options: Iterable[str]) -> list[str]:
+    """Up to three of ``options`` that look like ``word`` (for "did you mean" hints)."""
+    return difflib.get_close_matches(str(word), [str(o) for o in options], n=3, cutoff=0.5)
+
+
+def did_you_mean(word: str, options: Iterable[str]) -> str:
+    """`` (did you mean 'a' or 'b'?)`` for the close matches of ``word``, or ``""``."""
+    close = close_matches(word, options)
+    return f" (did you mean {' or '.join(repr(c) for c in close)}?)" if close else ""
+
+
+def check_outputs_free(paths: Iterable[str], *, overwrite: bool, hint: str = "use --overwrite to replace") -> None:
+    """The one overwrite policy: raise :class:`OutputExistsError` naming the first existing path
+    (and how many more) unless ``overwrite``."""
+    import os
+
+    if overwrite:
+        return
+    clashes = [str(p) for p in paths if os.path.lexists(p)]
+    if clashes:
+        more = f" and {len(clashes) - 1} more" if len(clashes) > 1 else ""
+        verb = "already exist" if clashes[1:] else "already exists"
+        raise OutputExistsError(f"{clashes[0]}{more} {verb}; {hint}")

@@ -1,9 +1,14 @@
 """Named, documented, validated components: the stage registry.
 
 A stage is a function registered under a ``(kind, name)`` pair together with a frozen
-dataclass of parameters. Each parameter field is declared with :func:`param`, which records
-its default, one-line help, unit and range or choices; ``stereocli stages`` prints them and
-:func:`Stage.make_params` validates user values against them.
+dataclass of parameters and a :class:`StageTraits` record. Each parameter field is declared
+with :func:`param`, which records its default, one-line help, unit and range or choices;
+``stereocli stages`` prints them and :func:`Stage.make_params` validates user values against
+them. The traits say what the pipeline must know about the stage (memory, the volumes it
+reads, the variants it offers); the pipeline reads nothing else about a stage.
+
+The registry knows no stage: a stage module registers its stages when it is imported, and
+:mod:`stereocli.match.stages` imports every built-in one.
 
 Example
 -------
@@ -22,13 +27,12 @@ Example
 from __future__ import annotations
 
 import dataclasses
-import difflib
 import fnmatch
 import typing
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
-from .errors import ConfigError
+from .errors import ConfigError, did_you_mean
 
 #: Pipeline order of the stage kinds.
 KINDS = ("preprocess", "cost", "aggregation", "optimizer", "refinement")
@@ -51,6 +55,85 @@ def param(
     if isinstance(default, (list, dict)):
         raise TypeError("use tuples for sequence defaults (dataclass fields must be immutable)")
     return field(default=default, metadata=meta)
+
+
+Predicate = Callable[..., bool]
+
+
+@dataclass(frozen=True)
+class StageTraits:
+    """What the matching pipeline must know about a stage, declared once at registration.
+
+    Every field defaults to "no special needs". Predicates take the stage's params (and, for
+    ``needs_second_best``/``needs_right_costs``, the :class:`~stereocli.match.state.MatchState`
+    first); give them a docstring, which ``stereocli stages -v`` prints.
+    """
+
+    # -- refinement stages --------------------------------------------------------------------
+    #: Reads the cost volume: runs inside each row strip, before the volume is dropped.
+    needs_cost: bool = False
+    #: Needs the right-view disparity (the pipeline computes it from the final volume).
+    needs_right: bool = False
+    #: Fills invalid pixels (``match --keep-invalid`` skips it).
+    fills_holes: bool = False
+    #: ``f(state, params)``: the same stage reading ``state.winner`` (the costs kept around each
+    #: winner) instead of the volume, with the same result. Lets the volume go unbuilt.
+    on_winner_costs: Callable | None = None
+    #: ``f(state, params) -> bool``: reads ``winner.second`` (best cost beyond ±1 of the winner).
+    needs_second_best: Predicate | None = None
+    #: ``f(state, params) -> bool``: reads ``winner.costs_right`` (costs around the right-view winners).
+    needs_right_costs: Predicate | None = None
+    #: ``f(params) -> bool``: reads the optimizer's integer maps (``state.integer_disparity``).
+    keeps_integer: Predicate | None = None
+
+    # -- cost stages ----------------------------------------------------------------------
+    #: ``f(state, params, winner: bool)``: cost + WTA in one pass, never storing the volume
+    #: (sets ``disparity`` and, if ``winner``, ``state.winner``).
+    fused_wta: Callable | None = None
+    #: ``f(state, params, runs) -> (costs, cost_max)``: the costs on a windowed SGM's runs only.
+    windowed: Callable | None = None
+    #: Bytes per cell of the integer volume the stage leaves when ``state.wants.integer_cost``
+    #: (0: always float32).
+    integer_cost_itemsize: int = 0
+
+    # -- optimizers -----------------------------------------------------------------------
+    #: Takes each pixel's lowest cost and nothing else, so a cost stage's ``fused_wta`` may
+    #: stand in for cost + this optimizer.
+    winner_take_all: bool = False
+    #: Reads an integer (uint8/uint16) volume straight from the cost stage.
+    accepts_integer_cost: bool = False
+    #: ``f(params) -> bool``: the stage owns the cost computation. It is called as
+    #: ``func(state, params, cost=<cost StageCall>)``; when this returns True and no aggregation
+    #: stage sits between them, the pipeline does not run the cost stage (the optimizer computes
+    #: the costs itself, e.g. only on its coarse-to-fine windows).
+    runs_cost: Predicate | None = None
+    #: ``f(params, width, ndisp) -> bytes``: fixed buffers per row strip (memory planner).
+    buffer_bytes: Callable | None = None
+
+    # -- memory (every stage that holds volumes) ----------------------------------------------
+    #: Extra (H, W, D) float32-sized volumes held beside the input (a uint16 copy counts 0.5);
+    #: None: 0 for a cost stage (just its output), 1 for the others.
+    volume_copies: float | None = None
+    #: ``volume_copies`` when the input is the cost stage's integer volume.
+    integer_volume_copies: float | None = None
+
+    def declared(self) -> dict[str, Any]:
+        """The fields that differ from the defaults (what ``stereocli stages -v`` prints)."""
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)
+                if getattr(self, f.name) != f.default}
+
+    def describe(self) -> list[str]:
+        """``name: value`` lines for the declared traits; callables by their docstring or name."""
+        lines = []
+        for name, value in self.declared().items():
+            if callable(value):
+                first_paragraph = (value.__doc__ or "").strip().split("\n\n")[0]
+                value = " ".join(first_paragraph.split()) or getattr(value, "__name__", "function")
+            lines.append(f"{name}: {value}")
+        return lines
+
+
+NO_TRAITS = StageTraits()
 
 
 @dataclass(frozen=True)
@@ -78,14 +161,8 @@ class ParamSpec:
 
 @dataclass(frozen=True)
 class Stage:
-    """A registered stage.
-
-    ``func(state, params)`` runs the stage on a :class:`stereocli.match.state.MatchState`.
-    ``needs_cost`` marks refinement stages that read the cost volume (they run inside each row
-    strip, before the volume is dropped); ``needs_right`` marks stages that need the right-view
-    disparity (the pipeline computes it from the final cost volume when the optimizer did not);
-    ``fills_holes`` marks stages that fill invalid pixels (``match --keep-invalid`` skips them).
-    """
+    """A registered stage: ``func(state, params)`` runs it on a
+    :class:`stereocli.match.state.MatchState`; ``traits`` tell the pipeline how."""
 
     kind: str
     name: str
@@ -93,9 +170,7 @@ class Stage:
     params_cls: type
     summary: str
     doc: str
-    needs_cost: bool = False
-    needs_right: bool = False
-    fills_holes: bool = False
+    traits: StageTraits = NO_TRAITS
 
     def param_specs(self) -> list[ParamSpec]:
         hints = typing.get_type_hints(self.params_cls)
@@ -148,11 +223,9 @@ def _type_name(tp: Any) -> str:
 
 
 def _suggest(word: str, options: list[str]) -> str:
-    close = difflib.get_close_matches(word, options, n=3, cutoff=0.5)
-    text = f"; valid: {', '.join(sorted(options))}" if options else "; it takes no parameters"
-    if close:
-        text = f"; did you mean {' or '.join(repr(c) for c in close)}?" + text
-    return text
+    if not options:
+        return "; it takes no parameters"
+    return did_you_mean(word, options) + f"; valid: {', '.join(sorted(options))}"
 
 
 def _coerce(value: Any, tp: Any, where: str, meta: dict) -> Any:
@@ -185,7 +258,7 @@ def _coerce(value: Any, tp: Any, where: str, meta: dict) -> Any:
     if choices and value not in choices:
         raise ConfigError(
             f"{where}: {value!r} is not one of {', '.join(map(str, choices))}"
-            + (_close(str(value), [str(c) for c in choices]))
+            + did_you_mean(str(value), [str(c) for c in choices])
         )
     low, high = meta.get("low"), meta.get("high")
     if low is not None and value < low or high is not None and value > high:
@@ -193,11 +266,6 @@ def _coerce(value: Any, tp: Any, where: str, meta: dict) -> Any:
         hi = "inf" if high is None else f"{high:g}"
         raise ConfigError(f"{where}: {value!r} is out of range [{lo}, {hi}]")
     return value
-
-
-def _close(word: str, options: list[str]) -> str:
-    close = difflib.get_close_matches(word, options, n=3, cutoff=0.5)
-    return f" (did you mean {' or '.join(repr(c) for c in close)}?)" if close else ""
 
 
 _REGISTRY: dict[str, dict[str, Stage]] = {kind: {} for kind in KINDS}
@@ -213,11 +281,9 @@ def register(
     name: str,
     params_cls: type = NoParams,
     *,
-    needs_cost: bool = False,
-    needs_right: bool = False,
-    fills_holes: bool = False,
+    traits: StageTraits = NO_TRAITS,
 ) -> Callable[[Callable], Callable]:
-    """Decorator: register ``func(state, params)`` as stage ``name`` of ``kind``.
+    """Decorator: register ``func(state, params)`` as stage ``name`` of ``kind`` with ``traits``.
 
     The first docstring line is the one-line summary; the rest is the long help.
     Registering a name twice is an error at import time.
@@ -232,9 +298,7 @@ def register(
             raise ValueError(f"{kind} stage {name!r} registered twice")
         doc = (func.__doc__ or "").strip()
         summary = doc.splitlines()[0] if doc else ""
-        _REGISTRY[kind][name] = Stage(
-            kind, name, func, params_cls, summary, doc, needs_cost, needs_right, fills_holes
-        )
+        _REGISTRY[kind][name] = Stage(kind, name, func, params_cls, summary, doc, traits)
         return func
 
     return decorate
@@ -245,14 +309,8 @@ def _unregister(kind: str, name: str) -> None:
     _REGISTRY[kind].pop(name, None)
 
 
-def _load_builtin_stages() -> None:
-    # Importing the stage modules runs their @register decorators.
-    from .match import stages  # noqa: F401
-
-
 def get(kind: str, name: str, *, source: str = "<config>", section: str = "") -> Stage:
     """Return the stage ``name`` of ``kind`` or raise :class:`ConfigError` with close matches."""
-    _load_builtin_stages()
     if kind not in _REGISTRY:
         raise ConfigError(f"unknown stage kind {kind!r}; valid: {', '.join(KINDS)}")
     try:
@@ -266,12 +324,44 @@ def get(kind: str, name: str, *, source: str = "<config>", section: str = "") ->
 
 def names(kind: str, pattern: str = "*") -> list[str]:
     """Sorted names of the registered stages of ``kind`` matching the fnmatch ``pattern``."""
-    _load_builtin_stages()
     return sorted(n for n in _REGISTRY[kind] if fnmatch.fnmatch(n, pattern))
 
 
 def stages(kind: str | None = None) -> list[Stage]:
     """All registered stages (of one kind, or of all kinds in pipeline order)."""
-    _load_builtin_stages()
     kinds = [kind] if kind else list(KINDS)
     return [_REGISTRY[k][n] for k in kinds for n in sorted(_REGISTRY[k])]
+
+
+def markdown_reference(chosen: list[Stage]) -> str:
+    """A Markdown reference of ``chosen`` stages: per kind, each stage's documentation, a table
+    of its parameters and its traits (``stereocli stages --format markdown``, docs/methods.md)."""
+    lines = ["# Matching stages", "",
+             "Every registered stage, its parameters and its traits. Generated by",
+             "`stereocli stages --format markdown > docs/methods.md`; a test checks it is current.", ""]
+    current = None
+    for s in chosen:
+        if s.kind != current:
+            current = s.kind
+            lines += [f"## {s.kind}", ""]
+        lines += [f"### `{s.name}`", "", *_dedent(s.doc), ""]
+        specs = s.param_specs()
+        if specs:
+            lines += ["| parameter | type | default | range | help |", "|---|---|---|---|---|"]
+            for p in specs:
+                default = list(p.default) if isinstance(p.default, tuple) else p.default
+                unit = f" {p.unit}" if p.unit else ""
+                cells = [f"`{p.name}`", p.type_name, f"`{default}`{unit}", p.describe_range(), p.help]
+                lines.append("| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |")
+            lines.append("")
+        traits = s.traits.describe()
+        if traits:
+            lines += ["Traits: " + "; ".join(f"`{t.split(': ', 1)[0]}`: {t.split(': ', 1)[1]}" for t in traits), ""]
+    return "\n".join(lines).rstrip() + "\n"
+
+
+def _dedent(doc: str) -> list[str]:
+    import textwrap
+
+    first, _, rest = doc.partition("\n")
+    return [first.strip(), *textwrap.dedent(rest).splitlines()]

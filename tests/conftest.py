@@ -8,6 +8,8 @@ from pathlib import Path
 
 import pytest
 
+import stereocli.match.stages  # noqa: F401  (the built-in stages register when imported)
+
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
 SAMPLES = REPO / "samples"

@@ -57,6 +57,6 @@ def run_stages(left, right, ndisp, stages, min_disp=0):
 
 
 def wta(state):
-    from stereocli.match.kernels.volume import wta_left
+    from stereocli.match.kernels.winners import wta_left
 
     return wta_left(state.cost, state.min_disp, state.cost_max)[0]

@@ -8,10 +8,10 @@ import pytest
 
 from local_scene import run_stages, scene, wta
 from stereocli import registry
-from stereocli.config import build_config
+from stereocli.match.config import build_config
 from stereocli.errors import ConfigError
 from stereocli.match.kernels import aggregation as ka
-from stereocli.match.kernels.volume import box_filter_volume
+from stereocli.match.kernels.aggregation import box_filter_volume
 
 AGGREGATIONS = ["box", "shiftable", "multiple_windows", "variable_window", "cross", "adaptive_weights",
                 "segment_support", "fast_bilateral", "locally_consistent", "guided_filter"]
@@ -136,9 +136,9 @@ def test_guided_filter_keeps_constant_and_follows_guide_edges():
 
 
 def _guided_state(left, right, ndisp, min_disp=0, right_view="guided", want_right=True, cost=None):
-    from stereocli.match.state import MatchState
+    from stereocli.match.state import MatchState, Wants
 
-    state = MatchState(left.copy(), right.copy(), min_disp, ndisp, want_right=want_right)
+    state = MatchState(left.copy(), right.copy(), min_disp, ndisp, wants=Wants(right=want_right))
     if cost is None:
         stage = registry.get("cost", "color_gradient")
         stage.func(state, stage.make_params({}))
@@ -174,7 +174,7 @@ def test_guided_right_view_equals_diagonal_for_flat_guides():
     # With flat guide images the guided filter is a plain (twice applied) box filter, which
     # commutes with the shift that maps a slice to the right view: away from the borders the
     # right-guided WTA must equal wta_right read from the left-guided volume.
-    from stereocli.match.kernels.volume import wta_right
+    from stereocli.match.kernels.winners import wta_right
 
     rng = np.random.default_rng(5)
     h, w, nd = 30, 60, 6

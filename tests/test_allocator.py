@@ -1,4 +1,4 @@
-"""The allocator setting that keeps freed buffers in the process (stereocli.match.allocator)."""
+"""The process-wide allocator setting (stereocli.process): applied by the entry point, not on import."""
 
 from __future__ import annotations
 
@@ -7,19 +7,30 @@ import platform
 import subprocess
 import sys
 
-CODE = "import stereocli.match.pipeline, stereocli.match.allocator as a; print(a.keep_freed_memory())"
+GLIBC = platform.system() == "Linux" and platform.libc_ver()[0] == "glibc"
 
 
-def _applied(env_value: str | None) -> str:
-    """What ``keep_freed_memory`` reports in a fresh interpreter after importing the pipeline."""
+def _run(code: str, env_value: str | None = None) -> str:
     env = {k: v for k, v in os.environ.items() if k != "STEREOCLI_KEEP_FREED_MEMORY"}
     if env_value is not None:
         env["STEREOCLI_KEEP_FREED_MEMORY"] = env_value
-    return subprocess.run([sys.executable, "-c", CODE], capture_output=True, text=True, env=env,
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
                           check=True).stdout.strip()
 
 
-def test_applied_on_import_with_glibc_and_disabled_by_the_environment():
-    if platform.system() == "Linux" and platform.libc_ver()[0] == "glibc":
-        assert _applied(None) == "True"
-    assert _applied("0") == "False"
+def test_importing_the_library_changes_no_process_setting():
+    code = "import stereocli.match.pipeline, stereocli.jobs, stereocli.process as p; print(p._applied)"
+    assert _run(code) == "None"
+
+
+def test_applied_by_the_call_with_glibc_and_disabled_by_the_environment():
+    code = "import stereocli.process as p; print(p.keep_freed_memory())"
+    if GLIBC:
+        assert _run(code) == "True"
+    assert _run(code, "0") == "False"
+
+
+def test_the_command_line_applies_it():
+    code = ("import stereocli.process as p; from click.testing import CliRunner; from stereocli.cli.main import cli; "
+            "CliRunner().invoke(cli, ['stages', 'census']); print(p._applied)")
+    assert _run(code) == ("True" if GLIBC else "False")

@@ -11,10 +11,11 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from stereocli.calib import CalibOptions, Pattern, calibrate_folder, detect_all, find_calibration_pairs
+from stereocli.calib import CalibOptions, Pattern, calibrate_folder, detect_all
 from stereocli.cli.main import cli
 from stereocli.errors import DataError
 from stereocli.io.calib import load_calibration, rotation_angle_deg
+from stereocli.io.pairs import find_calibration_pairs
 from stereocli.synth.rig import render_rig
 
 

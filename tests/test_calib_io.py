@@ -10,12 +10,13 @@ from stereocli.cli.main import cli
 from stereocli.errors import ConfigError, DataError
 from stereocli.io.calib import (StereoCalibration, detect_format, load_calibration, q_from_projections,
                                 ros_pair_paths, save_calibration)
+from stereocli.rectify import rectified_calibration
 from stereocli.synth.rig import default_rig
 
 
 @pytest.fixture()
 def calib() -> StereoCalibration:
-    c = default_rig().calibration().with_rectification(alpha=0.0)
+    c = rectified_calibration(default_rig().calibration(), alpha=0.0)
     c.rms = 0.1234567890123
     return c
 

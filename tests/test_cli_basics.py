@@ -2,12 +2,9 @@
 
 from __future__ import annotations
 
-import json
 import subprocess
 import sys
 
-import numpy as np
-import pytest
 
 from stereocli import __version__, registry
 
@@ -60,7 +57,8 @@ def test_config_show_prints_effective_yaml(run_cli):
 
 
 def test_default_preset_on_bundled_samples_scored_with_eval(run_cli, samples, tmp_path):
-    """Foundation acceptance: default preset < 3 % bad-1.0 nonocc on the synthetic scenes."""
+    """The default preset on the synthetic scenes: nonocc bad-1.0 of 1.04 % (curved) and 0.58 %
+    (planes), deterministic for any thread count; the bounds leave room for other CPUs' floats."""
     out = tmp_path / "out"
     r = run_cli("match", samples / "scenes", "-o", out)
     assert r.code == 0, r.err
@@ -69,8 +67,9 @@ def test_default_preset_on_bundled_samples_scored_with_eval(run_cli, samples, tm
     report = r.json()
     names = {s["name"] for s in report["scenes"]}
     assert names == {"planes", "curved"}
+    bound = {"curved": 1.15, "planes": 0.65}
     for scene in report["scenes"]:
-        assert scene["nonocc"]["bad1.0"] < 3.0, scene
+        assert scene["nonocc"]["bad1.0"] < bound[scene["name"]], scene
         assert scene["nonocc"]["invalid"] == 0.0  # dense output
 
 

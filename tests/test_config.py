@@ -5,7 +5,8 @@ from __future__ import annotations
 import pytest
 
 from stereocli import registry
-from stereocli.config import build_config, parse_set
+from stereocli.config import parse_set
+from stereocli.match.config import build_config
 from stereocli.errors import ConfigError
 
 

@@ -8,7 +8,7 @@ import pytest
 
 from local_scene import run_stages, scene, wta
 from stereocli import registry
-from stereocli.config import build_config
+from stereocli.match.config import build_config
 from stereocli.errors import ConfigError
 
 ALL_COSTS = ["ad", "sd", "tad", "sad", "ssd", "stad", "ncc", "zncc", "gradient", "color_gradient",
@@ -245,7 +245,7 @@ def test_invalid_parameter_through_config():
 def test_census_transform_bit_strings(window):
     # Strings longer than 32 bits are built in two halves: the order must stay raster order,
     # most significant first, bit = neighbour darker than the centre, border replicated.
-    from stereocli.match.kernels.cost import census_transform
+    from stereocli.match.kernels.census import census_transform
 
     rng = np.random.default_rng(sum(window))
     img = rng.integers(0, 6, (9, 15)).astype(np.float32)  # many ties: equal is not darker

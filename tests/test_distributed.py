@@ -7,7 +7,6 @@ import json
 import os
 import shutil
 import signal
-import sys
 import threading
 import time
 from pathlib import Path
@@ -15,12 +14,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from stereocli.batch import run_batch
+from stereocli.jobs.executors import run_batch
 from stereocli.io.images import write_image
 from stereocli.io.pfm import read_pfm
 from stereocli.synth.scenes import write_scene
 
-distributed = pytest.importorskip("distributed")
+import distributed  # noqa: E402  (the test extra installs Dask)
 
 # Data outputs that must be byte-identical (time.txt and params.json hold timings).
 DATA_FILES = ("disp0.pfm", "disp0.png", "disp1.pfm")
@@ -93,9 +92,9 @@ def test_remote_scheduler_resume_and_partial_failure(run_cli, tmp_path, scenes, 
 
 
 def _plan(scenes: Path, out: Path, **marks):
-    from stereocli.config import build_config
     from stereocli.io.pairs import discover_pairs
-    from stereocli.match.run import plan_items
+    from stereocli.jobs.match import plan_items
+    from stereocli.match.config import build_config
 
     pairs, _ = discover_pairs([str(scenes)])
     items = plan_items(pairs, out, config=build_config(["fast"], []).as_dict(), ndisp=None, min_disp=None, right=True)
@@ -107,7 +106,7 @@ def _plan(scenes: Path, out: Path, **marks):
 def kill_worker_once(item):
     """Item function: on the first attempt for s1, leave a half-written temporary beside the
     outputs and SIGKILL the worker process running it (as the OOM killer would)."""
-    from stereocli.match.run import match_item
+    from stereocli.jobs.match import match_item
 
     marker = Path(item.options["marker_dir"]) / f"{item.name}.killed"
     if item.name == "s1" and not marker.exists():
@@ -121,7 +120,7 @@ def kill_worker_once(item):
 
 def fail_once(item):
     """Item function: raise on the first attempt for s2 (a transient error), then match."""
-    from stereocli.match.run import match_item
+    from stereocli.jobs.match import match_item
 
     marker = Path(item.options["marker_dir"]) / f"{item.name}.failed"
     if item.name == "s2" and not marker.exists():
@@ -131,7 +130,7 @@ def fail_once(item):
 
 
 def test_worker_killed_mid_item_is_retried_and_nothing_partial_remains(tmp_path, scenes, cluster):
-    from stereocli.match.run import match_item
+    from stereocli.jobs.match import match_item
 
     ref = tmp_path / "ref"
     assert run_batch(_plan(scenes, ref), match_item).exit_code == 0
@@ -208,14 +207,3 @@ def test_failed_item_is_retried_on_every_executor(tmp_path, scenes, cluster):
         assert result.exit_code == 3 and [r.name for r in result.failed] == ["s2"]
         assert "transient" in result.failed[0].message
         _no_temporaries(out2)
-
-
-def test_scheduler_errors_are_config_errors(run_cli, tmp_path, scenes, monkeypatch):
-    r = run_cli("match", scenes / "s0", "-o", tmp_path / "o", "--scheduler", "not an address")
-    assert r.code == 2 and "tcp://host:port" in r.err
-    r = run_cli("match", scenes / "s0", "-o", tmp_path / "o", "--split-strips")
-    assert r.code == 2 and "--scheduler" in r.err
-    monkeypatch.setitem(sys.modules, "distributed", None)  # as if dask were not installed
-    r = run_cli("match", scenes / "s0", "-o", tmp_path / "o", "--scheduler", "local")
-    assert r.code == 2 and 'pip install "stereocli[dask]"' in r.err
-    assert len(r.err.strip().splitlines()) == 1 and not (tmp_path / "o").exists()

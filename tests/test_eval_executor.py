@@ -3,7 +3,6 @@ Dask; failures keep their messages and exit codes; retries re-run crashed scenes
 
 from __future__ import annotations
 
-import json
 import shutil
 import sys
 from pathlib import Path
@@ -12,6 +11,7 @@ import numpy as np
 import pytest
 
 from stereocli.evaluate import api
+from stereocli.jobs import evaluate as jobs_evaluate
 from stereocli.io.pfm import read_pfm, write_pfm
 
 # GT scenes: the bundled synthetic samples (Middlebury 2014 layout, every GT pixel known), plus
@@ -84,7 +84,6 @@ def test_same_report_in_process_and_with_a_process_pool(run_cli, tmp_path, gt_ro
 
 
 def test_same_report_on_a_local_dask_cluster(run_cli, tmp_path, gt_root):
-    pytest.importorskip("distributed")
     res = write_results(tmp_path / "res", gt_root)
     inline = run_cli("eval", res, gt_root, "--format", "json")
     dask = run_cli("eval", res, gt_root, "--format", "json", "--scheduler", "local", "--retries", "1")
@@ -134,12 +133,12 @@ def test_retries_rerun_crashed_scenes_only(tmp_path, gt_root, monkeypatch):
         return real(estimate, scene, **kwargs)
 
     monkeypatch.setattr(api, "evaluate_pair", flaky)
-    report = api.evaluate(res, gt_root, retries=2, progress=False)
+    report = jobs_evaluate.evaluate(res, gt_root, retries=2, progress=False)
     assert report.as_dict() == reference and report.exit_code == 3
     # curved crashed once and was re-run; Playroom's bad data is a result, not a crash: run once.
     assert calls == {"Playroom": 1, "curved": 2, "planes": 1}
     calls.clear()
-    report = api.evaluate(res, gt_root, progress=False)  # no retries: the crash is a scene failure
+    report = jobs_evaluate.evaluate(res, gt_root, progress=False)  # no retries: the crash is a scene failure
     assert [f["name"] for f in report.failures] == ["Playroom", "curved"]
     assert report.failures[1]["message"] == "RuntimeError: transient crash"
     assert [s.name for s in report.scenes] == ["planes"] and report.exit_code == 3

@@ -12,12 +12,12 @@ import numpy as np
 import pytest
 
 from local_scene import scene
-from stereocli.config import build_config, validate
+from stereocli.match.config import build_config, validate
 from stereocli.match import pipeline
-from stereocli.match.kernels import costs_local as kl
-from stereocli.match.kernels.cost import mask_invalid_right
+from stereocli.match.kernels import costs as kl
+from stereocli.match.kernels.costs import mask_invalid_right
 from stereocli.match.kernels.fused_sad import sad_wta
-from stereocli.match.kernels.volume import wta_left
+from stereocli.match.kernels.winners import wta_left
 from stereocli.match.pipeline import fused_cost_wta, match_pair
 
 
@@ -150,8 +150,8 @@ def test_pipeline_fused_equals_volume_path_on_random_images(monkeypatch):
 ])
 def test_pipeline_falls_back_to_the_volume(monkeypatch, config, reason):
     config = config()
-    volume_stages = [c for c in config.refinement if c.stage.needs_cost]
-    want_right = any(c.stage.needs_right for c in config.refinement)
+    volume_stages = [c for c in config.refinement if c.stage.traits.needs_cost]
+    want_right = any(c.stage.traits.needs_right for c in config.refinement)
     assert fused_cost_wta(config, volume_stages, want_right) is None, reason
     left, right, gt, mask = scene(color=False)
     result = match_pair(left, right, config, ndisp=16)
@@ -163,7 +163,7 @@ def test_pipeline_falls_back_to_the_volume(monkeypatch, config, reason):
 
 def test_fused_path_is_chosen_without_volume_refinements():
     config = PIPELINES["realtime"]()
-    stages = [c for c in config.refinement if c.stage.needs_cost]
+    stages = [c for c in config.refinement if c.stage.traits.needs_cost]
     assert [c.stage.name for c in stages] == ["single_matching_phase", "subpixel"]
     assert fused_cost_wta(config, stages, False) is not None
     assert fused_cost_wta(config, stages, True) is None  # a right-view disparity needs the volume

@@ -84,9 +84,9 @@ def test_sgm_uint16_costs_and_negative_min_disp():
 @pytest.mark.parametrize("height", [1, 5, 8])
 def test_sgm_right_view_and_cost_multiplier_match_reference(min_disp, height):
     # The right-view WTA is taken while the backward pass finishes each row: it must equal
-    # the volume-level WTA (stereocli.match.kernels.volume.wta_right) on the final sums, for
+    # the volume-level WTA (stereocli.match.kernels.winners.wta_right) on the final sums, for
     # odd/even/single-row heights (the two stripes split the rows at H // 2).
-    from stereocli.match.kernels.volume import wta_right
+    from stereocli.match.kernels.winners import wta_right
 
     rng = np.random.default_rng(height)
     cq = rng.integers(0, 20, (height, 14, 6)).astype(np.uint8)

@@ -1,4 +1,4 @@
-"""benchmarks/local_methods.py: the refinement chain of issue #6 and the derived depth-discontinuity
+"""benchmarks/local_methods.py: the classic local refinement chain and the derived depth-discontinuity
 mask used by ``--breakdown``."""
 
 from __future__ import annotations
@@ -58,7 +58,7 @@ def test_every_method_runs_wta_lr_check_then_hole_filling(bench, subpixel):
         assert config.optimizer.stage.name == "wta", method
         stages = [c.stage for c in config.refinement]
         names = [s.name for s in stages]
-        fills = [i for i, s in enumerate(stages) if s.fills_holes]
+        fills = [i for i, s in enumerate(stages) if s.traits.fills_holes]
         assert fills and names.count("lr_check") == 1, (method, names)
         assert names.index("lr_check") < fills[0], (method, names)  # fill the holes the check leaves
         # the check decides on the WTA winners, not on the sub-pixel values (they run first)

@@ -8,7 +8,7 @@ import pytest
 
 from local_scene import scene
 from stereocli import registry
-from stereocli.config import validate
+from stereocli.match.config import validate
 from stereocli.errors import ConfigError
 from stereocli.match.kernels.maps import lr_check_onto
 from stereocli.match.pipeline import match_pair, prepare
@@ -114,7 +114,7 @@ def test_pipeline_checks_the_wta_winners_and_keeps_the_sub_pixel_values():
 def test_pipeline_keeps_integer_maps_only_when_asked(compare, kept):
     left, right, _, _ = scene(h=32, w=48)
     prepared = prepare(left, right, _config([SUBPIXEL, {"name": "lr_check", "compare": compare}]), ndisp=8)
-    assert prepared.state.keep_integer is kept
+    assert prepared.state.wants.integer_maps is kept
 
 
 def test_unknown_compare_value_is_a_config_error():

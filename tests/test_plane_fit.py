@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from stereocli import registry
-from stereocli.config import build_config
+from stereocli.match.config import build_config
 from stereocli.match.pipeline import match_pair
 from stereocli.match.refine_segment import PlaneFitParams, fit_segment_planes, segment_image
 from stereocli.match.state import MatchState

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from stereocli.errors import DataError
-from stereocli.io.ply import read_ply, write_ply
+from stereocli.io.ply import write_ply
 
-plyfile = pytest.importorskip("plyfile")
+import plyfile  # noqa: E402  (the test extra installs it)
 
 
 @pytest.mark.parametrize("ascii", [False, True])
@@ -29,9 +29,6 @@ def test_roundtrip_with_plyfile(tmp_path, ascii):
     np.testing.assert_array_equal(np.c_[v["red"], v["green"], v["blue"]], col)
     np.testing.assert_array_equal(v["confidence"], conf)
     np.testing.assert_array_equal(v["nx"], nrm[:, 0])
-    ours, comments = read_ply(path)
-    np.testing.assert_array_equal(ours["z"], pts[:, 2])
-    assert comments == ["units m; frame left"]
 
 
 def test_empty_and_invalid(tmp_path):

@@ -8,7 +8,7 @@ import pytest
 
 from local_scene import run_stages, scene, wta
 from stereocli import registry
-from stereocli.config import build_config
+from stereocli.match.config import build_config
 from stereocli.errors import ConfigError
 from stereocli.match.preprocess import match_histogram
 from stereocli.match.state import MatchState

@@ -8,10 +8,10 @@ import pytest
 
 from local_scene import run_stages, scene
 from stereocli import registry
-from stereocli.config import build_config
+from stereocli.match.config import build_config
 from stereocli.errors import ConfigError
 from stereocli.match.pipeline import match_pair
-from stereocli.match.refine_local import single_matching_phase_kernel, weighted_median_at
+from stereocli.match.kernels.refine import single_matching_phase_kernel, weighted_median_at
 from stereocli.match.state import MatchState
 
 INF = np.inf

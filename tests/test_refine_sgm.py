@@ -69,7 +69,7 @@ def test_confidence_range_and_ordering():
     st = make_state(disp, cost, right)
     s.func(st, p)
     assert st.confidence is None  # nobody asked for the map: the stage is skipped
-    st.want_confidence = True
+    st.wants.confidence = True
     s.func(st, p)
     c = st.confidence
     assert c.dtype == np.float32 and c.shape == (1, 10)
@@ -114,9 +114,9 @@ def test_interpolate_occlusion_takes_background_mismatch_takes_median():
 
 
 def test_interpolate_is_flagged_as_filling():
-    assert registry.get("refinement", "interpolate").fills_holes
-    assert registry.get("refinement", "fill").fills_holes
-    assert not registry.get("refinement", "median").fills_holes
+    assert registry.get("refinement", "interpolate").traits.fills_holes
+    assert registry.get("refinement", "fill").traits.fills_holes
+    assert not registry.get("refinement", "median").traits.fills_holes
 
 
 def _median_of_finite_reference(disp: np.ndarray, radius: int) -> np.ndarray:

@@ -169,7 +169,7 @@ def _matched_scene():
     stages = [("cost", "census", {"window": [5, 5]}), ("aggregation", "box", {"window": [5, 5]}),
               ("optimizer", "wta", {})]
     state = run_stages(left, right, 16, stages)
-    from stereocli.match.kernels.volume import wta_right
+    from stereocli.match.kernels.winners import wta_right
 
     state.disparity_right = wta_right(state.cost, 0, np.float32(state.cost_max))
     return state, gt, mask
@@ -237,10 +237,10 @@ def test_cross_two_threshold_option():
 
 @pytest.mark.shared_data
 def test_quality_preset_meets_tsukuba_target(shared_data):
-    """Issue #9: the quality preset scores ≤ 1.5 % nonocc bad > 1 on Tsukuba (derived mask)."""
+    """The quality preset scores ≤ 1.5 % nonocc bad > 1 on Tsukuba (derived mask)."""
     import cv2
 
-    from stereocli.config import build_config
+    from stereocli.match.config import build_config
     from stereocli.evaluate.metrics import derive_nonocc_mask, middlebury_stats
     from stereocli.match.pipeline import match_pair
 

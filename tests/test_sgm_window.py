@@ -6,8 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stereocli.config import build_config
-from stereocli.match.kernels import cost as kc
+from stereocli.match.config import build_config
+from stereocli.match.kernels import census as kc
+from stereocli.match.kernels.costs import mask_invalid_right
 from stereocli.match.kernels import sgm as ks
 from stereocli.match.kernels import sgm_window as kw
 from stereocli.match.optimize import sgm as osgm
@@ -147,7 +148,7 @@ def test_windowed_census_costs_equal_the_dense_volume():
     runs = kw.window_runs(lo, hi, nd, 4)
     got = kc.hamming_runs(left, right, min_disp, 34.0, runs[2], runs[3], runs[4], runs[5], valid)
     dense = kc.hamming_volume(left, right, min_disp, nd, 34.0, np.uint8)
-    kc.mask_invalid_right(dense, valid, min_disp, np.float32(34.0))
+    mask_invalid_right(dense, valid, min_disp, np.float32(34.0))
     np.testing.assert_array_equal(got, kw.gather_runs(dense, runs[2], runs[3], runs[4], runs[5]))
 
 
@@ -262,20 +263,18 @@ def test_confidence_and_uniqueness_from_the_winner_equal_the_dense_volume():
     left, right = warp_pair(gt, seed=2)
     refine = [{"name": "subpixel"}, {"name": "uniqueness", "ratio": 0.02}, {"name": "confidence"},
               {"name": "lr_check"}]
-    from stereocli.config import validate
+    from stereocli.match.config import validate
 
     base = {"cost": {"name": "census", "window": [5, 7]}, "optimizer": {"name": "sgm", "paths": 4, "coarse": True},
             "refinement": refine}
     cfg = validate(base, "<test>")
     winner = match_pair(left, right, cfg, ndisp=16, want_confidence=True)
-    from stereocli.match import refine as mr
+    from dataclasses import replace
 
-    saved = mr.uniqueness.on_winner_costs
-    try:
-        del mr.uniqueness.on_winner_costs  # now the pipeline asks the SGM for the dense sums
-        volume = match_pair(left, right, cfg, ndisp=16, want_confidence=True)
-    finally:
-        mr.uniqueness.on_winner_costs = saved
+    # Without the variant the pipeline asks the SGM for the dense sums.
+    call = cfg.refinement[1]
+    call.stage = replace(call.stage, traits=replace(call.stage.traits, on_winner_costs=None))
+    volume = match_pair(left, right, cfg, ndisp=16, want_confidence=True)
     np.testing.assert_array_equal(winner.disparity, volume.disparity)
     np.testing.assert_array_equal(winner.confidence, volume.confidence)
 
@@ -292,7 +291,7 @@ def test_coarse_to_fine_is_deterministic_across_thread_counts():
 
 
 def test_coarse_to_fine_with_aggregation_uses_the_dense_volume():
-    from stereocli.config import validate
+    from stereocli.match.config import validate
 
     gt = np.full((40, 64), 5.0, np.float32)
     left, right = warp_pair(gt)
@@ -314,7 +313,7 @@ def test_valid_masks_are_honoured_by_both_searches(coarse):
     left_valid[:, -6:] = False
     right_valid = np.ones(gt.shape, bool)
     right_valid[:, 20:26] = False  # a band of the right image no left pixel may match
-    from stereocli.config import validate
+    from stereocli.match.config import validate
 
     cfg = validate({"cost": {"name": "census", "window": [5, 7]},
                     "optimizer": {"name": "sgm", "paths": 4, "coarse": coarse == "true"}, "refinement": []}, "<test>")
@@ -335,17 +334,16 @@ def test_coarse_level_range_covers_the_range_in_whole_vector_steps(monkeypatch, 
     seen = []
     real = osgm.run_sgm
 
-    def spy(state, p, coarse=None):
+    def spy(state, p, cost=None, coarse=None):
         seen.append((state.min_disp, state.ndisp))
-        return real(state, p, coarse)
+        return real(state, p, cost, coarse)
 
     monkeypatch.setattr(osgm, "run_sgm", spy)
     gt = np.full((32, 96), float(max(min_disp + 2, 0)), np.float32)
     left, right = warp_pair(gt, seed=1)
     cfg = build_config([], WINDOWED)
     state = MatchState(left.astype(np.float32), right.astype(np.float32), min_disp, ndisp)
-    state.cost_call = cfg.cost
-    osgm.coarse_disparity(state, cfg.optimizer.params)
+    osgm.coarse_disparity(state, cfg.optimizer.params, cfg.cost)
     lo, n = seen[0]
     assert lo == min_disp // 2
     assert n % osgm.COARSE_RANGE_STEP == 0

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from stereocli.config import build_config
+from stereocli.match.config import build_config
 from stereocli.io.images import read_image
 from stereocli.match.pipeline import finish, match_pair, prepare, run_strip, strip_input
 from stereocli.synth.scenes import write_scene
@@ -83,7 +83,8 @@ def test_finish_rejects_results_of_another_plan(scene):
 
 
 def test_strips_split_over_dask_workers_equal_in_process(run_cli, tmp_path, scene):
-    distributed = pytest.importorskip("distributed")
+    import distributed  # the test extra installs Dask
+
     sets = [a for s in STRIPS for a in ("--set", s)]
     args = ("-c", "fast", "--right", "--png16", "256", *sets)
     assert run_cli("match", scene, "-o", tmp_path / "inline", *args).code == 0

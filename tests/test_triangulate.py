@@ -59,9 +59,10 @@ def test_q_path_agrees_with_opencv():
 
 
 def test_opencv_rectify_q_matches(tmp_path):
+    from stereocli.rectify import rectified_calibration
     from stereocli.synth.rig import default_rig
 
-    calib = default_rig().calibration().with_rectification()
+    calib = rectified_calibration(default_rig().calibration())
     disp = np.random.default_rng(0).uniform(5, 80, (480, 640)).astype(np.float32)
     g = geometry_from_calibration(calib)
     _, cloud = triangulate(disp, g)

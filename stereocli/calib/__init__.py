@@ -1,27 +1,28 @@
-"""Stereo calibration from target photos: pairing, detection (cached, parallel), OpenCV solve, report."""
+"""Stereo calibration from target photos: detection (cached, parallel), OpenCV solve, report."""
 
 from __future__ import annotations
 
 import os
 
 from .detect import Detection, detect_all
-from .inputs import find_calibration_pairs
 from .pattern import Pattern, parse_pattern_size
 from .stereo import CalibOptions, CalibrationResult, build_views, calibrate_stereo, format_report
 
 __all__ = ["CalibOptions", "CalibrationResult", "Detection", "Pattern", "calibrate_folder", "detect_all",
-           "find_calibration_pairs", "format_report", "parse_pattern_size"]
+           "format_report", "parse_pattern_size"]
 
 
 def calibrate_folder(folder: str | os.PathLike, pattern: Pattern, options: CalibOptions | None = None, *,
                      detector: str = "auto", jobs: int | None = None, cache: str | os.PathLike | None = None,
                      progress: bool | None = None, swap: bool = False) -> CalibrationResult:
-    """Pair, detect and calibrate the photos in ``folder`` (see :mod:`stereocli.calib.inputs`).
+    """Pair, detect and calibrate the photos in ``folder`` (paired by
+    :func:`stereocli.io.pairs.find_calibration_pairs`).
 
     ``swap`` exchanges left and right (for rigs wired the other way round). Raises
     :class:`~stereocli.errors.DataError` when the target is found in no image or in too few pairs.
     """
     from ..errors import DataError
+    from ..io.pairs import find_calibration_pairs
 
     pairs = find_calibration_pairs(folder)
     if swap:

@@ -242,10 +242,10 @@ def calibrate_stereo(views: list[View], image_size: tuple[int, int], pattern: Pa
 
     calib = StereoCalibration(K1=K1, D1=D1, K2=K2, D2=D2, R=R, T=T, image_size=image_size, rms=float(rms),
                               units=pattern.units, model="fisheye" if opts.fisheye else "pinhole")
-    calib = calib.with_rectification(alpha=opts.alpha)
-    from ..rectify.maps import stereo_rectify
+    from ..rectify.maps import rectified_calibration, stereo_rectify
 
     rect = stereo_rectify(calib, alpha=opts.alpha)
+    calib = rectified_calibration(calib, rect=rect)
     epi = rectified_epipolar_error(calib, active)
     board_distance = float(np.median([np.linalg.norm(t) for t in tvecs]))
     depths = [float(np.asarray(t).ravel()[2]) for t in tvecs]

@@ -10,6 +10,7 @@ import click
 
 from . import options
 from ..errors import ConfigError as usage_error  # one-line message, exit 2
+from ..errors import check_outputs_free
 
 _SQUARE = re.compile(r"^\s*([0-9]*\.?[0-9]+(?:[eE][-+]?\d+)?)\s*([a-zA-Zµ]*)\s*$")
 
@@ -24,14 +25,6 @@ def _square(text: str, units: str | None) -> tuple[float, str]:
     if value <= 0:
         raise usage_error("--square must be positive")
     return value, unit
-
-
-def _refuse_existing(paths: list[Path], overwrite: bool) -> None:
-    from ..errors import OutputExistsError
-
-    existing = [p for p in paths if p.exists()]
-    if existing and not overwrite:
-        raise OutputExistsError(f"{existing[0]} already exists; use --overwrite to replace it")
 
 
 def _output_paths(output: Path, fmt: str | None) -> list[Path]:
@@ -130,7 +123,7 @@ def calibrate_cmd(ctx, input_dir, output, pattern_text, square_text, units, patt
     if same_focal and not joint:
         raise usage_error("--same-focal needs --joint (intrinsics are fixed in the stereo solve otherwise)")
     report_path = Path(report_path) if report_path else output.with_name(output.stem + ".report.json")
-    _refuse_existing(_output_paths(output, fmt) + [report_path], overwrite)
+    check_outputs_free(_output_paths(output, fmt) + [report_path], overwrite=overwrite)
     cache = None if no_cache else (Path(cache_path) if cache_path else output.parent / ".stereocli-detections.json")
     result = calibrate_folder(input_dir, pattern, opts, detector=detector, jobs=jobs, cache=cache,
                               progress=None if verbosity >= 0 else False, swap=swap)
@@ -170,6 +163,7 @@ def convert_calib_cmd(ctx, src, dst, fmt, alpha, ndisp, overwrite):
       stereocli convert-calib camchain.yaml calib.txt --to middlebury
     """
     from ..io.calib import load_calibration, save_calibration
+    from ..rectify.maps import rectified_calibration
 
     dst = Path(dst)
     if fmt is None:
@@ -179,10 +173,10 @@ def convert_calib_cmd(ctx, src, dst, fmt, alpha, ndisp, overwrite):
                               "use .yml/.yaml/.xml/.json, .txt or --to")
     if fmt == "ros" and dst.suffix.lower() not in (".yaml", ".yml"):
         dst = dst.with_name(dst.name + ".yaml")
-    _refuse_existing(_output_paths(dst, fmt), overwrite)
+    check_outputs_free(_output_paths(dst, fmt), overwrite=overwrite)
     calib = load_calibration(src)
     if alpha is not None or (fmt in ("ros", "middlebury") and not calib.is_rectified):
-        calib = calib.with_rectification(alpha=alpha or 0.0)
+        calib = rectified_calibration(calib, alpha=alpha or 0.0)
     if fmt == "middlebury" and not ndisp:
         ndisp = int(calib.extra.get("ndisp", 0) or 0)
     written = save_calibration(dst, calib, fmt, ndisp=ndisp)

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import click
 
-from ..batch import BatchResult, ItemResult
 from ..errors import EXIT_DATA, EXIT_OK, EXIT_PARTIAL
+from ..jobs.items import BatchResult, ItemResult
 from ..runinfo import RunRecord
 
 

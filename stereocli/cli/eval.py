@@ -75,9 +75,10 @@ def eval_cmd(ctx: click.Context, results: str, ground_truth: str, fmt: str, data
       stereocli eval out ../data/trainingQ --format json --jobs 2
       stereocli eval out gt/ --scheduler tcp://127.0.0.1:8786 --retries 1
     """
-    from ..errors import DataError, OutputExistsError
-    from ..evaluate import EvalOptions, evaluate, format_table
+    from ..errors import DataError, check_outputs_free
+    from ..evaluate import EvalOptions, format_table
     from ..io.atomic import write_text
+    from ..jobs.evaluate import evaluate
 
     verbosity = options.verbosity(ctx)
     opts = EvalOptions(
@@ -90,11 +91,8 @@ def eval_cmd(ctx: click.Context, results: str, ground_truth: str, fmt: str, data
         gt_scale=gt_scale,
         keep_arrays=bool(error_maps or html_dir),
     )
-    if output and not overwrite:
-        from pathlib import Path
-
-        if Path(output).exists():
-            raise OutputExistsError(f"{output} already exists; use --overwrite to replace")
+    if output:
+        check_outputs_free([output], overwrite=overwrite)
     report = evaluate(results, ground_truth, options=opts, jobs=jobs, scheduler=scheduler, retries=retries,
                       verbose_errors=verbosity >= 2)
     text = format_table(report, fmt)

@@ -70,6 +70,9 @@ def cli(ctx: click.Context, verbose: int, quiet: int) -> None:
     Disparity is float32 pixels referenced to the left image (x_right = x_left - d);
     invalid pixels are +inf. Run `stereocli demo OUTDIR` to see the whole chain.
     """
+    from ..process import keep_freed_memory
+
+    keep_freed_memory()  # process-wide: freed large buffers stay in the process between pairs
     ctx.ensure_object(dict)
     ctx.obj["verbosity"] = ctx.obj.get("verbosity", 0) + verbose - quiet
 

@@ -25,12 +25,7 @@ from .common import argv, finish_batch, print_json, unpaired_failures
 @click.option("--confidence", is_flag=True, help="Also write conf0.pfm, per-pixel confidence in [0, 1].")
 @click.option("--right", is_flag=True, help="Also write disp1.pfm, the right-view disparity.")
 @click.option("--keep-invalid", is_flag=True, help="Skip hole filling: invalid pixels stay +inf.")
-@options.overwrite
-@options.skip_existing
-@options.dry_run
-@options.jobs
-@options.scheduler
-@options.retries
+@options.batch
 @click.option("--split-strips/--no-split-strips", "split_strips", default=None,
               help="Spread the row strips of each large pair over the Dask workers (default: on with --scheduler).")
 @options.verbose
@@ -50,11 +45,11 @@ def match_cmd(ctx, inputs, outdir, config_files, sets, ndisp, min_disp, png16_sc
       stereocli match data/ -o out -c fast --jobs 2 --skip-existing
       stereocli match data/ -o out --scheduler tcp://127.0.0.1:8786 --retries 2
     """
-    from ..batch import run_batch
-    from ..config import build_config
     from ..errors import ConfigError
     from ..io.pairs import discover_pairs
-    from ..match.run import match_item, plan_items
+    from ..jobs.executors import run_batch
+    from ..jobs.match import match_item, plan_items
+    from ..match.config import build_config
     from ..runinfo import RunRecord, versions
 
     verbosity = options.verbosity(ctx)
@@ -65,10 +60,8 @@ def match_cmd(ctx, inputs, outdir, config_files, sets, ndisp, min_disp, png16_sc
     pairs, problems = discover_pairs(inputs)
     items = plan_items(pairs, outdir, config=effective, ndisp=ndisp, min_disp=min_disp, png16_scale=png16_scale,
                        npy=npy, viz=viz, confidence=confidence, right=right, keep_invalid=keep_invalid,
+                       split_strips=bool(scheduler) and split_strips is not False,
                        record_info={"versions": versions(), "config_sources": config.sources})
-    if scheduler and split_strips is not False:
-        for item in items:
-            item.options["split_strips"] = True  # pairs with one strip run whole on one worker
     if dry_run:
         print_json({"command": "match", "config": effective, "config_sources": config.sources,
                     "unpaired": problems,

@@ -23,6 +23,14 @@ sets = click.option("-s", "--set", "sets", multiple=True, metavar="SECTION.KEY=V
                     help="Override one config value (repeatable; beats --config).")
 
 
+def batch(func):
+    """The options of every batch subcommand: --overwrite, --skip-existing, --dry-run, --jobs,
+    --scheduler, --retries (in that order in --help)."""
+    for option in reversed((overwrite, skip_existing, dry_run, jobs, scheduler, retries)):
+        func = option(func)
+    return func
+
+
 def _add_verbosity(delta: int):
     def callback(ctx: click.Context, _param: click.Parameter, value: int) -> None:
         root = ctx.find_root()

@@ -38,12 +38,7 @@ def _size(text: str | None) -> tuple[int, int] | None:
 @click.option("--min-depth", type=click.FloatRange(min=0, min_open=True),
               help="Nearest scene depth (calibration units) for the ndisp estimate = f·B/min_depth.")
 @click.option("--check", is_flag=True, help="Also write check.png: side by side, horizontal lines, ROI boxes.")
-@options.overwrite
-@options.skip_existing
-@options.dry_run
-@options.jobs
-@options.scheduler
-@options.retries
+@options.batch
 @options.verbose
 @click.pass_context
 def rectify_cmd(ctx, inputs, calib_path, outdir, alpha, size_text, interp, ndisp, min_depth, check, overwrite,
@@ -60,19 +55,20 @@ def rectify_cmd(ctx, inputs, calib_path, outdir, alpha, size_text, interp, ndisp
       stereocli rectify photos/ --calib rig.yml -o rectified --check
       stereocli rectify left.png right.png --calib rig.yml -o out --alpha 1 --size 1280x960
     """
-    from ..batch import run_batch
     from ..io.calib import load_calibration
-    from ..rectify.run import dry_run_plan, find_pairs, plan_items, rectify_item
+    from ..io.pairs import discover_pairs
+    from ..jobs.executors import run_batch
+    from ..jobs.rectify import plan_items, rectify_item
     from ..runinfo import RunRecord
 
     verbosity = options.verbosity(ctx)
     size = _size(size_text)
     load_calibration(calib_path)  # fail fast (exit 1/2) before any work
-    pairs, problems = find_pairs(inputs)
+    pairs, problems = discover_pairs(inputs, side_words=True)
     items = plan_items(pairs, outdir, calib_path=calib_path, alpha=alpha, size=size, interpolation=interp,
                        check=check, ndisp=ndisp, min_depth=min_depth)
     if dry_run:
-        click.echo(dry_run_plan(items))
+        print_json([i.as_dict() for i in items])
         return
     for problem in problems:
         click.echo(f"Warning: {problem}", err=True)

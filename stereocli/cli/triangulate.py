@@ -38,12 +38,7 @@ from ..errors import ConfigError as usage_error  # one-line message, exit 2
 @click.option("--depth-png16", is_flag=True, help="Also write a uint16 PNG of depth in millimetres (0 = invalid).")
 @click.option("--summary", is_flag=True, help="Write a JSON summary (count, depth percentiles, bounding box).")
 @options.output_format
-@options.overwrite
-@options.skip_existing
-@options.dry_run
-@options.jobs
-@options.scheduler
-@options.retries
+@options.batch
 @options.verbose
 @click.pass_context
 def triangulate_cmd(ctx, inputs, output, calib_path, image, scenes, confidence, scale, units, use_q, min_depth,
@@ -61,9 +56,9 @@ def triangulate_cmd(ctx, inputs, output, calib_path, image, scenes, confidence, 
       stereocli triangulate out/ --scenes rect/ -o clouds/ --units m --max-depth 5 --summary
       stereocli triangulate disp.png --scale 256 --calib rig.yml --image left.png -o cloud.ply --ascii
     """
-    from ..batch import run_batch
+    from ..jobs.executors import run_batch
+    from ..jobs.triangulate import plan_items, triangulate_item
     from ..runinfo import RunRecord
-    from ..triangulate import plan_items, triangulate_item
 
     if min_depth is not None and max_depth is not None and min_depth >= max_depth:
         raise usage_error(f"--min-depth {min_depth} must be below --max-depth {max_depth}")
@@ -78,7 +73,7 @@ def triangulate_cmd(ctx, inputs, output, calib_path, image, scenes, confidence, 
                                  npy=npy, depth_format=depth_format, depth_png16=depth_png16, summary=summary,
                                  options=opts)
     if dry_run:
-        print_json([{"name": i.name, "inputs": i.inputs, "outputs": i.outputs, "options": i.options} for i in items])
+        print_json([i.as_dict() for i in items])
         return
     for problem in problems:
         click.echo(f"Warning: {problem}", err=True)

@@ -6,11 +6,11 @@ are failures, never silently skipped); ``evaluate`` accepts whatever the command
 file or a folder on either side). All return plain dataclasses whose ``as_dict()`` is the JSON
 report.
 
-Folder mode scores its scenes as a batch (:func:`stereocli.batch.run_batch`) with the
-executors of every other subcommand: in-process (default), a process pool (``jobs > 1``) or
-Dask (``scheduler``). Only paths travel to the workers (:func:`eval_item`); each returns its
-scene's :class:`SceneResult`, and the report is assembled here in GT-scene order, so it is the
-same whichever executor ran the scenes.
+Folder mode is three steps: :func:`plan_folder` pairs GT scenes with results (paths only, one
+:class:`SceneTask` per scene to score), a *scorer* runs :func:`score_scene` on every task
+(in-process by default; :mod:`stereocli.jobs.evaluate` supplies one that runs the tasks on any
+executor), and :func:`folder_report` assembles the report in GT-scene order, so it is the same
+whichever scorer ran the scenes.
 """
 
 from __future__ import annotations
@@ -18,11 +18,10 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from ..batch import WorkItem, run_batch
 from ..errors import ConfigError, DataError, StereoError
 from . import datasets as ds
 from .metrics import (
@@ -318,26 +317,41 @@ def evaluate_pair(
     return result
 
 
-def eval_item(item: WorkItem) -> dict[str, Any]:
-    """Batch item function: load one GT scene and score its result (top level: picklable by name).
+@dataclass
+class SceneTask:
+    """One GT scene to score, as paths (picklable, cheap to send to a worker).
 
-    ``item.inputs``: ``gt`` (scene folder or KITTI root), ``result`` (disparity file), optional
-    ``time`` (``time.txt``); ``item.options``: ``kind`` (GT layout) and ``eval_options``
-    (:class:`EvalOptions`). Returns ``{"scene": SceneResult | None, "resolution": str | None,
-    "failure": str | None, "config_error": str | None}``: bad data (:class:`DataError`) is a
-    *scored outcome* (``failure``, the one-line message), not a failed item, so ``retries`` only
-    re-run items that crashed (unexpected exception, dead worker, task lost on the cluster).
-    The :class:`SceneResult` holds numbers only, plus its arrays when ``keep_arrays`` is set.
+    ``kind`` is the GT layout (:class:`~stereocli.evaluate.datasets.GTEntry`), ``gt`` the scene
+    folder or KITTI root, ``result`` the disparity file, ``time`` its ``time.txt`` if any.
     """
-    options: EvalOptions = item.options["eval_options"]
-    entry = ds.GTEntry(item.name, item.options["kind"], Path(item.inputs["gt"]))
-    time_path = item.inputs.get("time")
+
+    name: str
+    kind: str
+    gt: str
+    result: str
+    time: str | None = None
+
+
+#: ``scorer(tasks, options) -> outcomes``, one :func:`score_scene` outcome per task, in order.
+SceneScorer = Callable[[Sequence[SceneTask], EvalOptions], list[dict[str, Any]]]
+
+
+def score_scene(task: SceneTask, options: EvalOptions) -> dict[str, Any]:
+    """Load one GT scene and score its result.
+
+    Returns ``{"scene": SceneResult | None, "resolution": str | None, "failure": str | None,
+    "config_error": str | None}``: bad data (:class:`DataError`) is a *scored outcome*
+    (``failure``, the one-line message), not an exception, so an executor's retries only re-run
+    scenes that crashed. The :class:`SceneResult` holds numbers only, plus its arrays when
+    ``keep_arrays`` is set.
+    """
+    entry = ds.GTEntry(task.name, task.kind, Path(task.gt))
     out: dict[str, Any] = {"scene": None, "resolution": None, "failure": None, "config_error": None}
     try:
         scene = ds.load_entry(entry, gt_scale=options.gt_scale, resolution=options.scene_resolution())
         out["resolution"] = scene.resolution
-        out["scene"] = evaluate_pair(item.inputs["result"], scene, options=options,
-                                     time=ds.read_time(Path(time_path) if time_path else None), name=entry.name)
+        out["scene"] = evaluate_pair(task.result, scene, options=options,
+                                     time=ds.read_time(Path(task.time) if task.time else None), name=entry.name)
     except ConfigError as exc:
         out["config_error"] = str(exc)
     except StereoError as exc:
@@ -345,41 +359,35 @@ def eval_item(item: WorkItem) -> dict[str, Any]:
     return out
 
 
-def evaluate_folder(
-    results_dir: str | os.PathLike,
-    gt_dir: str | os.PathLike,
-    *,
-    options: EvalOptions | None = None,
-    dataset: str | None = None,
-    jobs: int = 1,
-    scheduler: str | None = None,
-    retries: int = 0,
-    executor: str | None = None,
-    progress: bool | None = None,
-    verbose_errors: bool = False,
-) -> EvalReport:
-    """Score every GT scene under ``gt_dir`` with the result of the same name in ``results_dir``.
+def score_in_process(tasks: Sequence[SceneTask], options: EvalOptions) -> list[dict[str, Any]]:
+    """The default scorer: :func:`score_scene` on each task, one after the other."""
+    return [score_scene(task, options) for task in tasks]
 
-    GT scenes without a result are failures ("missing result"); results without GT are noted
-    (not scored). A scene that fails to load or score is a failure with a one-line message.
 
-    ``jobs``, ``scheduler``, ``retries``, ``executor``, ``progress``: how the scenes run, as in
-    :func:`stereocli.batch.run_batch` (in-process by default; ``jobs > 1`` a process pool;
-    ``scheduler`` = ``tcp://host:port`` or ``local`` Dask). The report does not depend on them.
-    A scene whose scoring crashed (not bad data: that is reported at once) is run again up to
-    ``retries`` times, then reported as a failure.
+@dataclass
+class FolderPlan:
+    """GT scenes paired with results: per GT scene, in order, a :class:`SceneTask` or a failure
+    found while pairing (``{"name", "message"}``); the dataset kinds seen; unused result names."""
+
+    slots: list[SceneTask | dict[str, str]]
+    kinds: list[str]
+    unused: list[str]
+
+    @property
+    def tasks(self) -> list[SceneTask]:
+        return [s for s in self.slots if isinstance(s, SceneTask)]
+
+
+def plan_folder(results_dir: str | os.PathLike, gt_dir: str | os.PathLike, options: EvalOptions) -> FolderPlan:
+    """Pair every GT scene under ``gt_dir`` with the result of the same name in ``results_dir``.
+
+    Exact names claim their results first; a case-insensitive match (Tsukuba vs tsukuba) only
+    takes a result no other scene claims exactly, so v2 "teddy" never scores MiddEval3 "Teddy".
     """
-    options = options or EvalOptions(dataset=dataset)
-    if dataset is not None and options.dataset is None:
-        options.dataset = dataset
     entries = ds.find_gt_scenes(Path(gt_dir), dataset=options.dataset)
     results = ds.find_results(Path(results_dir))
-    failures: list[dict[str, str]] = []
     kinds: set[str] = set()
-    # One slot per GT scene, in order: a failure found while pairing, or a work item to score.
-    plan: list[dict[str, str] | WorkItem] = []
-    # Exact names claim their results first; a case-insensitive match (Tsukuba vs tsukuba) only
-    # takes a result no other scene claims exactly, so v2 "teddy" never scores MiddEval3 "Teddy".
+    slots: list[SceneTask | dict[str, str]] = []
     exact = {e.name for e in entries if e.name in results}
     used: set[str] = set()
     for entry in entries:
@@ -389,52 +397,76 @@ def evaluate_folder(
             spare = {k: v for k, v in results.items() if k not in exact and k not in used}
             res = ds.match_name(entry.name, spare)
         if res is None:
-            plan.append({"name": entry.name, "message": f"missing result (no {entry.name}/disp0*.pfm or "
-                                                        f"{entry.name}.pfm in {results_dir})"})
+            slots.append({"name": entry.name, "message": f"missing result (no {entry.name}/disp0*.pfm or "
+                                                         f"{entry.name}.pfm in {results_dir})"})
             continue
         used.add(res.name)
         if res.path is None:
-            plan.append({"name": entry.name, "message": res.problem or "no result"})
+            slots.append({"name": entry.name, "message": res.problem or "no result"})
             continue
-        inputs = {"gt": str(entry.path), "result": str(res.path)}
-        if res.time_path is not None:
-            inputs["time"] = str(res.time_path)
-        plan.append(WorkItem(entry.name, inputs, {}, {"kind": entry.kind, "eval_options": options}))
-    items = [p for p in plan if isinstance(p, WorkItem)]
-    batch = run_batch(items, eval_item, jobs=jobs, scheduler=scheduler, retries=retries, executor=executor,
-                      progress=progress, desc="eval", verbose_errors=verbose_errors)
-    outcomes = iter(batch.results)
+        slots.append(SceneTask(entry.name, entry.kind, str(entry.path), str(res.path),
+                               None if res.time_path is None else str(res.time_path)))
+    return FolderPlan(slots, sorted(kinds), sorted(set(results) - used))
+
+
+def folder_report(plan: FolderPlan, outcomes: Sequence[dict[str, Any]], options: EvalOptions) -> EvalReport:
+    """The report of a planned folder from one :func:`score_scene` outcome per task, in order.
+
+    An outcome of ``{"failure": message}`` alone (a scene whose scoring crashed) is a failure.
+    Raises :class:`ConfigError` when a scene reported a configuration error.
+    """
+    outcomes = iter(outcomes)
     scenes: list[SceneResult] = []
+    failures: list[dict[str, str]] = []
     resolutions: set[str] = set()
-    for slot in plan:
-        if not isinstance(slot, WorkItem):
+    for slot in plan.slots:
+        if not isinstance(slot, SceneTask):
             failures.append(slot)
             continue
         done = next(outcomes)
-        if done.status != "ok":  # crashed on every attempt (bug, dead worker, lost task)
-            failures.append({"name": slot.name, "message": done.message or "failed"})
+        if done.get("config_error"):
+            raise ConfigError(done["config_error"])
+        if done.get("resolution"):
+            resolutions.add(done["resolution"])
+        if done.get("failure") is not None:
+            failures.append({"name": slot.name, "message": done["failure"]})
             continue
-        if done.details.get("config_error"):
-            raise ConfigError(done.details["config_error"])
-        if done.details.get("resolution"):
-            resolutions.add(done.details["resolution"])
-        if done.details.get("failure") is not None:
-            failures.append({"name": slot.name, "message": done.details["failure"]})
-            continue
-        result: SceneResult = done.details["scene"]
+        result: SceneResult = done["scene"]
         scenes.append(result)
         for err in result.errors:
             failures.append({"name": slot.name, "message": err, "partial": "true"})
     notes = []
-    unused = sorted(set(results) - used)
-    if unused:
-        notes.append(f"results without ground truth (not scored): {', '.join(unused)}")
+    if plan.unused:
+        notes.append(f"results without ground truth (not scored): {', '.join(plan.unused)}")
     report = EvalReport(scenes=scenes, failures=failures,
-                        rules=rules_text(sorted(kinds), options, sorted(resolutions) or ["F"]),
+                        rules=rules_text(plan.kinds, options, sorted(resolutions) or ["F"]),
                         thresholds=tuple(options.thresholds), quantiles=tuple(options.quantiles),
                         mode="folder", notes=notes)
     _add_mask_notes(report)
     return report
+
+
+def evaluate_folder(
+    results_dir: str | os.PathLike,
+    gt_dir: str | os.PathLike,
+    *,
+    options: EvalOptions | None = None,
+    dataset: str | None = None,
+    scorer: SceneScorer | None = None,
+) -> EvalReport:
+    """Score every GT scene under ``gt_dir`` with the result of the same name in ``results_dir``.
+
+    GT scenes without a result are failures ("missing result"); results without GT are noted
+    (not scored). A scene that fails to load or score is a failure with a one-line message.
+    ``scorer`` runs the scene tasks (default :func:`score_in_process`); the report does not
+    depend on it.
+    """
+    options = options or EvalOptions(dataset=dataset)
+    if dataset is not None and options.dataset is None:
+        options.dataset = dataset
+    plan = plan_folder(results_dir, gt_dir, options)
+    outcomes = (scorer or score_in_process)(plan.tasks, options)
+    return folder_report(plan, outcomes, options)
 
 
 def _add_mask_notes(report: EvalReport) -> None:
@@ -448,26 +480,15 @@ def evaluate(
     ground_truth: str | os.PathLike,
     *,
     options: EvalOptions | None = None,
-    jobs: int = 1,
-    scheduler: str | None = None,
-    retries: int = 0,
-    executor: str | None = None,
-    progress: bool | None = None,
-    verbose_errors: bool = False,
+    scorer: SceneScorer | None = None,
 ) -> EvalReport:
     """What ``stereocli eval RESULTS GROUND_TRUTH`` does: pair mode or folder mode.
 
     Pair mode (RESULTS is a file, or a folder holding ``disp0*.pfm`` itself): errors raise
     :class:`DataError`; the one pair is scored in-process. Folder mode: per-scene failures are
-    collected in the report; the scenes run on the executor chosen by ``jobs``/``scheduler``/
-    ``executor`` (see :func:`evaluate_folder`). A bad ``scheduler`` or a missing Dask raises
-    :class:`ConfigError` before anything is read, in both modes.
+    collected in the report; ``scorer`` runs the scenes (see :func:`evaluate_folder`).
     """
     options = options or EvalOptions()
-    if scheduler is not None or executor == "dask":
-        from ..distributed import check_scheduler
-
-        check_scheduler(scheduler)
     results, ground_truth = Path(results), Path(ground_truth)
     if not results.exists():
         raise DataError(f"{results}: no such file or folder")
@@ -487,9 +508,7 @@ def evaluate(
     if pair_file is None:
         if ground_truth.is_file():
             raise ConfigError(f"{results} is a folder but {ground_truth} is a file; give a GT folder")
-        return evaluate_folder(results, ground_truth, options=options, jobs=jobs, scheduler=scheduler,
-                               retries=retries, executor=executor, progress=progress,
-                               verbose_errors=verbose_errors)
+        return evaluate_folder(results, ground_truth, options=options, scorer=scorer)
     # Pair mode.
     if ground_truth.is_file():
         scene = ds.load_gt_file(ground_truth, dataset=options.dataset, gt_scale=options.gt_scale,
@@ -516,5 +535,6 @@ def evaluate(
     return report
 
 
-__all__ = ["EvalOptions", "SceneResult", "EvalReport", "evaluate", "evaluate_pair", "evaluate_folder",
-           "eval_item", "weighted_average", "rules_text", "threshold_key"]
+__all__ = ["EvalOptions", "SceneResult", "EvalReport", "FolderPlan", "SceneScorer", "SceneTask", "evaluate",
+           "evaluate_pair", "evaluate_folder", "folder_report", "plan_folder", "score_in_process", "score_scene",
+           "weighted_average", "rules_text", "threshold_key"]

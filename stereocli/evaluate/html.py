@@ -10,7 +10,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..errors import OutputExistsError
+from ..errors import check_outputs_free
 from ..io.atomic import write_text
 from .api import EvalReport
 from .maps import scene_images
@@ -85,7 +85,6 @@ def write_html(report: EvalReport, out_dir: str | Path, *, overwrite: bool = Fal
                filename: str = "report.html") -> Path:
     """Write ``OUT/report.html`` (atomically); refuses to replace it without ``overwrite``."""
     path = Path(out_dir) / filename
-    if path.exists() and not overwrite:
-        raise OutputExistsError(f"{path} already exists; use --overwrite to replace")
+    check_outputs_free([path], overwrite=overwrite)
     write_text(path, render_html(report))
     return path

@@ -12,7 +12,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..errors import OutputExistsError
+from ..errors import check_outputs_free
 from ..io.images import read_image, write_image
 from ..viz import colorize_disparity, colorize_error, gray_preview, legend_bar, with_legend
 from .api import EvalReport, SceneResult
@@ -109,11 +109,7 @@ def write_error_maps(report: EvalReport, out_dir: str | Path, *, overwrite: bool
     """Write ``OUT/<scene>/{disparity,gt,error,bad}.png`` for every scored scene."""
     out_dir = Path(out_dir)
     targets = [out_dir / s.name / f for s in report.scenes for f in MAP_FILES]
-    if not overwrite:
-        clashes = [p for p in targets if p.exists()]
-        if clashes:
-            more = f" and {len(clashes) - 1} more" if len(clashes) > 1 else ""
-            raise OutputExistsError(f"{clashes[0]}{more} already exist(s); use --overwrite to replace")
+    check_outputs_free(targets, overwrite=overwrite)
     written = []
     for s in report.scenes:
         imgs = scene_images(s, report.thresholds)

@@ -23,9 +23,9 @@ import math
 from typing import Iterable, Sequence
 
 import numpy as np
-from numba import njit, prange
 
 from ..errors import DataError
+from .kernels import kitti_fill_cols, kitti_fill_rows, zbuffer_visible
 
 #: Default bad-pixel thresholds (px); JSON keys are ``bad0.5``, ``bad1.0``, ...
 DEFAULT_THRESHOLDS: tuple[float, ...] = (0.5, 1.0, 2.0, 4.0)
@@ -203,52 +203,6 @@ def middlebury_stats(
 # KITTI
 
 
-@njit(cache=True, parallel=True)
-def _kitti_fill_rows(d: np.ndarray) -> None:  # pragma: no cover - compiled
-    height, width = d.shape
-    for v in prange(height):
-        count = 0
-        for u in range(width):
-            if d[v, u] >= 0.0 and d[v, u] < np.inf:
-                if count >= 1:
-                    u1 = u - count
-                    u2 = u - 1
-                    # devkit: interior gaps only (a gap touching column 0 is extrapolated below)
-                    if u1 > 0 and u2 < width - 1:
-                        fill = min(d[v, u1 - 1], d[v, u2 + 1])
-                        for uc in range(u1, u2 + 1):
-                            d[v, uc] = fill
-                count = 0
-            else:
-                count += 1
-        for u in range(width):
-            if d[v, u] >= 0.0 and d[v, u] < np.inf:
-                for u2 in range(u):
-                    d[v, u2] = d[v, u]
-                break
-        for u in range(width - 1, -1, -1):
-            if d[v, u] >= 0.0 and d[v, u] < np.inf:
-                for u2 in range(u + 1, width):
-                    d[v, u2] = d[v, u]
-                break
-
-
-@njit(cache=True, parallel=True)
-def _kitti_fill_cols(d: np.ndarray) -> None:  # pragma: no cover - compiled
-    height, width = d.shape
-    for u in prange(width):
-        for v in range(height):
-            if d[v, u] >= 0.0 and d[v, u] < np.inf:
-                for v2 in range(v):
-                    d[v2, u] = d[v, u]
-                break
-        for v in range(height - 1, -1, -1):
-            if d[v, u] >= 0.0 and d[v, u] < np.inf:
-                for v2 in range(v + 1, height):
-                    d[v2, u] = d[v, u]
-                break
-
-
 def kitti_valid(disp: np.ndarray) -> np.ndarray:
     """KITTI validity: finite and ``>= 0`` (the devkit's ``isValid`` is ``d >= 0``)."""
     return np.isfinite(disp) & (disp >= 0)
@@ -265,8 +219,8 @@ def kitti_interpolate_background(disp: np.ndarray) -> np.ndarray:
     """
     d = np.array(disp, dtype=np.float32, copy=True)
     d[~kitti_valid(d)] = np.inf
-    _kitti_fill_rows(d)
-    _kitti_fill_cols(d)
+    kitti_fill_rows(d)
+    kitti_fill_cols(d)
     return d
 
 
@@ -321,37 +275,6 @@ def kitti_stats(
 # Derived non-occlusion masks for Middlebury 2001/2003 (official region masks not available)
 
 
-@njit(cache=True, parallel=True)
-def _zbuffer_visible(gt: np.ndarray, out: np.ndarray) -> None:  # pragma: no cover - compiled
-    height, width = gt.shape
-    for y in prange(height):
-        dmax = -1.0
-        for x in range(width):
-            g = gt[y, x]
-            if g < np.inf and g > dmax:
-                dmax = g
-        for x in range(width):
-            d = gt[y, x]
-            if not d < np.inf:
-                out[y, x] = False
-                continue
-            xr = x - d
-            # outside the right image (pixel footprint [-0.5, W - 0.5])
-            if xr < -0.5 or xr > width - 0.5:
-                out[y, x] = False
-                continue
-            visible = True
-            # a nearer pixel x2 (d2 > d) landing within 0.5 px needs x2 - d2 > xr - 0.5, i.e.
-            # x2 > x, and x2 < xr + 0.5 + d2 <= xr + 0.5 + dmax: a bounded search.
-            last = min(width - 1, int(math.floor(xr + 0.5 + dmax)))
-            for x2 in range(x + 1, last + 1):
-                d2 = gt[y, x2]
-                if d2 < np.inf and d2 > d and abs((x2 - d2) - xr) < 0.5:
-                    visible = False
-                    break
-            out[y, x] = visible
-
-
 def derive_nonocc_mask(gt: np.ndarray, gt_right: np.ndarray | None = None) -> np.ndarray:
     """Non-occluded mask derived from the left GT (MANIFEST rule), (H, W) bool.
 
@@ -363,7 +286,7 @@ def derive_nonocc_mask(gt: np.ndarray, gt_right: np.ndarray | None = None) -> np
     """
     gt = np.ascontiguousarray(gt, dtype=np.float32)
     out = np.zeros(gt.shape, dtype=np.bool_)
-    _zbuffer_visible(gt, out)
+    zbuffer_visible(gt, out)
     if gt_right is not None:
         if gt_right.shape != gt.shape:
             raise DataError(f"right-view GT size {gt_right.shape[::-1]} differs from the left GT {gt.shape[::-1]}")

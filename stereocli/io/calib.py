@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import math
 import os
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -106,14 +106,6 @@ class StereoCalibration:
     @property
     def is_rectified(self) -> bool:
         return self.P1 is not None and self.P2 is not None
-
-    def with_rectification(self, *, alpha: float = 0.0, size: tuple[int, int] | None = None) -> "StereoCalibration":
-        """A copy with R1 R2 P1 P2 Q from ``cv2.stereoRectify`` (zero-disparity principal points)."""
-        from ..rectify.maps import stereo_rectify
-
-        rect = stereo_rectify(self, alpha=alpha, size=size)
-        return replace(self, R1=rect.R1, R2=rect.R2, P1=rect.P1, P2=rect.P2, Q=rect.Q,
-                       rectified_size=rect.size)
 
 
 def skew(t: np.ndarray) -> np.ndarray:
@@ -277,9 +269,13 @@ def _ros_doc(name: str, K, D, R, P, size, model: str) -> str:
 
 
 def write_ros(path: str | os.PathLike, calib: StereoCalibration) -> tuple[Path, Path]:
-    """Write the ROS ``camera_info`` pair ``<stem>_left.yaml`` / ``<stem>_right.yaml``; returns both paths."""
+    """Write the ROS ``camera_info`` pair ``<stem>_left.yaml`` / ``<stem>_right.yaml``; returns both paths.
+
+    ``calib`` must be rectified (R1, R2, P1, P2: :func:`stereocli.rectify.rectified_calibration`).
+    """
     if not calib.is_rectified:
-        calib = calib.with_rectification()
+        raise DataError(f"{path}: ROS camera_info needs a rectified calibration: rectify the calibration first "
+                        "(P1, P2 missing)")
     left, right = ros_pair_paths(path)
     size = calib.rectified_size or calib.image_size
     if size != calib.image_size:
@@ -476,7 +472,8 @@ def save_calibration(path: str | os.PathLike, calib: StereoCalibration, fmt: str
                      *, ndisp: int = 0) -> list[Path]:
     """Write ``calib`` as ``fmt`` (``opencv``/``ros``/``middlebury``; default from the extension).
 
-    Returns the written paths (ROS writes two files).
+    ``ros`` and ``middlebury`` need a rectified calibration
+    (:func:`stereocli.rectify.rectified_calibration`). Returns the written paths (ROS writes two files).
     """
     path = Path(path)
     if fmt is None:
@@ -488,8 +485,6 @@ def save_calibration(path: str | os.PathLike, calib: StereoCalibration, fmt: str
         return [path]
     if fmt == "ros":
         return list(write_ros(path, calib))
-    if not calib.is_rectified:
-        calib = calib.with_rectification()
     write_middlebury(path, calib, ndisp=ndisp)
     return [path]
 

@@ -1,4 +1,4 @@
-"""Finding stereo pairs in what the user passed on the command line.
+"""Finding stereo pairs in what the user passed on the command line: every pairing rule.
 
 Accepted forms (mixed freely):
 
@@ -9,17 +9,20 @@ Accepted forms (mixed freely):
 * a folder of scene folders;
 * a folder with ``left/`` and ``right/`` subfolders, or the two folders themselves, paired by
   file stem (``left/0001.png`` with ``right/0001.png``; a ``left_``/``right_`` or
-  ``_left``/``_right`` prefix or suffix on the stem is ignored for pairing).
+  ``_left``/``_right`` prefix or suffix on the stem is ignored for pairing);
+* calibration photos (:func:`find_calibration_pairs`; ``rectify`` with ``side_words``): a
+  folder of ``left*``/``right*`` files keyed by the stem with the side word removed
+  (``left01.jpg`` ↔ ``right01.jpg``, ``img_left_7`` ↔ ``img_right_7``), or ``left/`` +
+  ``right/`` subfolders keyed the same way, in natural order (``2`` before ``10``).
 
 Files that cannot be paired are returned as problems (the caller reports them as failed
-items), never dropped silently.
+items), never dropped silently; calibration photos without a partner are an error.
 """
 
 from __future__ import annotations
 
-import os
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 from ..errors import DataError
@@ -40,16 +43,22 @@ class StereoInput:
     left_valid: str | None = None  # valid-pixel mask (255 = valid) from rectify
     right_valid: str | None = None
     folder: str | None = None  # the scene folder, when the pair came from one
-    extra: dict = field(default_factory=dict)
 
 
-def _images(folder: Path) -> dict[str, Path]:
-    return {p.stem: p for p in sorted(folder.iterdir()) if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES}
+def image_files(folder: Path) -> list[Path]:
+    """Image files directly in ``folder``, sorted by name."""
+    return sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
 
+
+def _by_stem(folder: Path) -> dict[str, Path]:
+    return {p.stem: p for p in image_files(folder)}
+
+
+# --------------------------------------------------------------------------- scene folders
 
 def scene_pair(folder: Path) -> StereoInput | None:
     """The pair inside a scene folder, or None when the folder is not a scene."""
-    images = _images(folder)
+    images = _by_stem(folder)
     for left, right in SCENE_PAIRS:
         if left in images and right in images:
             calib = folder / "calib.txt"
@@ -66,35 +75,123 @@ def scene_pair(folder: Path) -> StereoInput | None:
     return None
 
 
-_SIDE = re.compile(r"(^(left|right|l|r)[_-]?)|([_-]?(left|right|l|r)$)", re.IGNORECASE)
+def _pair_names() -> str:
+    return ", ".join(f"{a}/{b}" for a, b in SCENE_PAIRS)
 
 
-def _pair_key(stem: str) -> str:
-    return _SIDE.sub("", stem) or stem
+# --------------------------------------------------------------------------- left/ + right/ folders by stem
+
+_SIDE_AFFIX = re.compile(r"(^(left|right|l|r)[_-]?)|([_-]?(left|right|l|r)$)", re.IGNORECASE)
+
+
+def _stem_key(stem: str) -> str:
+    return _SIDE_AFFIX.sub("", stem) or stem
 
 
 def pair_folders(left_dir: Path, right_dir: Path) -> tuple[list[StereoInput], list[str]]:
     """Pair ``left_dir`` and ``right_dir`` images by stem; returns pairs and unpaired-file problems."""
-    lefts = {_pair_key(s): p for s, p in _images(left_dir).items()}
-    rights = {_pair_key(s): p for s, p in _images(right_dir).items()}
+    lefts = {_stem_key(s): p for s, p in _by_stem(left_dir).items()}
+    rights = {_stem_key(s): p for s, p in _by_stem(right_dir).items()}
     pairs = [StereoInput(name=k, left=str(lefts[k]), right=str(rights[k])) for k in sorted(lefts.keys() & rights.keys())]
     problems = [f"{lefts[k]}: no matching right image in {right_dir}" for k in sorted(lefts.keys() - rights.keys())]
     problems += [f"{rights[k]}: no matching left image in {left_dir}" for k in sorted(rights.keys() - lefts.keys())]
     return pairs, problems
 
 
-def discover_pairs(inputs: list[str] | tuple[str, ...]) -> tuple[list[StereoInput], list[str]]:
+# --------------------------------------------------------------------------- side words (calibration photos)
+
+_SIDE_WORD = re.compile(r"(left|right)", re.IGNORECASE)
+
+
+def side_key(stem: str) -> tuple[str | None, str]:
+    """``(side, key)``: the first side word of ``stem`` (``"left"``/``"right"``, None without
+    one) and the stem without it (``"img_left_7"`` -> ``("left", "img_7")``)."""
+    m = _SIDE_WORD.search(stem)
+    if not m:
+        return None, stem
+    key = (stem[: m.start()] + stem[m.end():]).strip("_-. ")
+    return m.group(1).lower(), key
+
+
+def natural_key(key: str) -> list:
+    """Sort key that orders digit runs by value (``2`` before ``10``)."""
+    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", key)]
+
+
+def find_calibration_pairs(folder: str | Path) -> list[tuple[str, str, str]]:
+    """``(name, left_path, right_path)`` pairs in ``folder`` (sorted naturally by name).
+
+    Raises :class:`DataError` when a photo has no partner or nothing pairs.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise DataError(f"{folder}: not a folder (calibrate expects a folder with left/ + right/ or left*/right* images)")
+    left_dir, right_dir = folder / "left", folder / "right"
+    lefts: dict[str, Path] = {}
+    rights: dict[str, Path] = {}
+    if left_dir.is_dir() and right_dir.is_dir():
+        for side, d, table in (("left", left_dir, lefts), ("right", right_dir, rights)):
+            for p in image_files(d):
+                found, key = side_key(p.stem)
+                table[(key if found == side else p.stem) or p.stem] = p
+    else:
+        for p in image_files(folder):
+            side, key = side_key(p.stem)
+            if side == "left":
+                lefts[key] = p
+            elif side == "right":
+                rights[key] = p
+        if not lefts and not rights:
+            raise DataError(f"{folder}: no calibration images (expected left/ + right/ subfolders or left*/right* files)")
+    only_left = sorted(lefts.keys() - rights.keys(), key=natural_key)
+    only_right = sorted(rights.keys() - lefts.keys(), key=natural_key)
+    if only_left or only_right:
+        first = lefts[only_left[0]] if only_left else rights[only_right[0]]
+        raise DataError(
+            f"{folder}: {len(lefts)} left and {len(rights)} right images do not pair up "
+            f"({first.name} has no partner; {len(only_left) + len(only_right)} unpaired in all)")
+    if not lefts:
+        raise DataError(f"{folder}: no calibration image pairs")
+    return [(k, str(lefts[k]), str(rights[k])) for k in sorted(lefts, key=natural_key)]
+
+
+def _is_side_word_folder(folder: Path) -> bool:
+    """A folder of ``left*``/``right*`` photos only (no scene pair, no ``left/`` subfolder)."""
+    if not folder.is_dir() or scene_pair(folder) or (folder / "left").is_dir():
+        return False
+    images = image_files(folder)
+    return bool(images) and all(side_key(f.stem)[0] for f in images)
+
+
+# --------------------------------------------------------------------------- command-line inputs
+
+def discover_pairs(inputs: list[str] | tuple[str, ...], *,
+                   side_words: bool = False) -> tuple[list[StereoInput], list[str]]:
     """Resolve command-line inputs into stereo pairs.
 
     Returns ``(pairs, problems)``; raises :class:`DataError` when an input does not exist or
     nothing at all can be paired. Pair names are unique (a clash is an error, since outputs
-    are written to ``OUTDIR/<name>/``).
+    are written to ``OUTDIR/<name>/``). With ``side_words``, folders holding only
+    ``left*``/``right*`` photos are paired as calibration photos (listed first).
     """
+    if side_words:
+        pairs: list[StereoInput] = []
+        rest = []
+        for raw in inputs:
+            if _is_side_word_folder(Path(raw)):
+                pairs += [StereoInput(name=name, left=left, right=right)
+                          for name, left, right in find_calibration_pairs(raw)]
+            else:
+                rest.append(raw)
+        if not rest:
+            return pairs, []
+        found, problems = discover_pairs(rest)
+        return pairs + found, problems
     paths = [Path(p) for p in inputs]
     for p in paths:
         if not p.exists():
             raise DataError(f"{p}: no such file or folder")
-    pairs: list[StereoInput] = []
+    pairs = []
     problems: list[str] = []
     files = [p for p in paths if p.is_file()]
     folders = [p for p in paths if p.is_dir()]
@@ -143,18 +240,10 @@ def _discover_folder(folder: Path) -> tuple[list[StereoInput], list[str]]:
         scene = scene_pair(sub)
         if scene:
             pairs.append(scene)
-        elif _images(sub):
+        elif image_files(sub):
             problems.append(f"{sub}: holds images but no recognised left/right pair ({_pair_names()})")
-    if not subdirs and _images(folder):
+    if not subdirs and image_files(folder):
         problems.append(f"{folder}: holds images but no recognised left/right pair ({_pair_names()})")
-    if not subdirs and not _images(folder):
+    if not subdirs and not image_files(folder):
         raise DataError(f"{folder}: empty folder (no images or scene folders)")
     return pairs, problems
-
-
-def _pair_names() -> str:
-    return ", ".join(f"{a}/{b}" for a, b in SCENE_PAIRS)
-
-
-def common_root(paths: list[str]) -> str:
-    return os.path.commonpath(paths) if paths else ""

@@ -8,7 +8,6 @@ and frame, so a cloud file explains itself.
 from __future__ import annotations
 
 import os
-from pathlib import Path
 
 import numpy as np
 
@@ -71,36 +70,3 @@ def write_ply(path: str | os.PathLike, points: np.ndarray, *, colors: np.ndarray
             else:
                 fh.write(vertices.tobytes())
     return n
-
-
-def read_ply(path: str | os.PathLike) -> tuple[np.ndarray, list[str]]:
-    """Read a PLY written by :func:`write_ply` (vertex element only): structured array and comments."""
-    path = Path(path)
-    raw = path.read_bytes()
-    end = raw.find(b"end_header\n")
-    if not raw.startswith(b"ply") or end < 0:
-        raise DataError(f"{path}: not a PLY file")
-    lines = raw[:end].decode("ascii").splitlines()
-    fmt, count, fields, comments = "", 0, [], []
-    types = {"float": "<f4", "float32": "<f4", "uchar": "u1", "uint8": "u1", "double": "<f8", "int": "<i4"}
-    for line in lines[1:]:
-        parts = line.split()
-        if not parts:
-            continue
-        if parts[0] == "format":
-            fmt = parts[1]
-        elif parts[0] == "comment":
-            comments.append(line[len("comment "):])
-        elif parts[0] == "element" and parts[1] == "vertex":
-            count = int(parts[2])
-        elif parts[0] == "property":
-            fields.append((parts[2], types[parts[1]]))
-    dtype = np.dtype(fields)
-    body = raw[end + len(b"end_header\n"):]
-    if fmt == "binary_little_endian":
-        return np.frombuffer(body, dtype=dtype, count=count).copy(), comments
-    table = np.loadtxt(body.decode("ascii").splitlines(), ndmin=2) if count else np.zeros((0, len(fields)))
-    out = np.empty(count, dtype=dtype)
-    for k, name in enumerate(dtype.names):
-        out[name] = table[:, k]
-    return out, comments

@@ -22,8 +22,9 @@ from ..errors import ConfigError
 from ..registry import param, register
 from .cost import _channels, check_odd_window
 from .kernels import aggregation as ka
-from .kernels.cost import mask_invalid_right
-from .kernels.volume import CV_MAX_CHANNELS, box_filter_volume, wta_left
+from .kernels.aggregation import CV_MAX_CHANNELS, box_filter_volume
+from .kernels.costs import mask_invalid_right
+from .kernels.winners import wta_left
 from .state import MatchState
 
 
@@ -422,7 +423,7 @@ def guided_filter(state: MatchState, p: GuidedFilterParams) -> None:
     filt = _GuidedFilter(_guide(state.left), p.radius, p.eps)
     for k in range(cost.shape[2]):  # one slice at a time: OpenCV box filters, little memory
         out[:, :, k] = filt(np.ascontiguousarray(cost[:, :, k]))
-    if p.right_view == "guided" and state.want_right:
+    if p.right_view == "guided" and state.wants.right:
         state.disparity_right = _guided_right_view(cost, _GuidedFilter(_guide(state.right), p.radius, p.eps),
                                                    state.min_disp, float(state.cost_max), state.right_valid)
     _finish(state, out)

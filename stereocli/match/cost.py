@@ -24,9 +24,9 @@ import cv2
 import numpy as np
 
 from ..errors import ConfigError
-from ..registry import param, register
-from .kernels import cost as kc
-from .kernels import costs_local as kl
+from ..registry import StageTraits, param, register
+from .kernels import census as kc
+from .kernels import costs as kl
 from .kernels.fused_sad import sad_wta as fused_sad_wta
 from .state import MatchState, WinnerCosts
 
@@ -36,7 +36,7 @@ def run_cost_stage(state: MatchState, call) -> None:
     right pixel is outside ``state.right_valid`` the volume's maximum cost."""
     call.stage.func(state, call.params)
     if state.right_valid is not None:
-        kc.mask_invalid_right(state.cost, state.right_valid, state.min_disp, np.float32(state.cost_max))
+        kl.mask_invalid_right(state.cost, state.right_valid, state.min_disp, np.float32(state.cost_max))
 
 
 def _channels(image: np.ndarray) -> np.ndarray:
@@ -96,7 +96,7 @@ def ad_cost(state: MatchState, p: ADParams) -> None:
     Pair it with an aggregation stage (``box`` = SAD) or a global optimizer.
     """
     state.cost_max = float(p.truncate)
-    state.cost = kc.absdiff_volume(_channels(state.left), _channels(state.right), state.min_disp,
+    state.cost = kl.absdiff_volume(_channels(state.left), _channels(state.right), state.min_disp,
                                    state.ndisp, state.cost_max, float(p.truncate))
 
 
@@ -114,7 +114,7 @@ def tad_cost(state: MatchState, p: TADParams) -> None:
     §3.1). Same kernel as ``ad`` with a lower default threshold.
     """
     state.cost_max = float(p.truncate)
-    state.cost = kc.absdiff_volume(_channels(state.left), _channels(state.right), state.min_disp,
+    state.cost = kl.absdiff_volume(_channels(state.left), _channels(state.right), state.min_disp,
                                    state.ndisp, state.cost_max, float(p.truncate))
 
 
@@ -176,7 +176,7 @@ class WindowADParams:
         check_odd_window("cost.window", self.window)
 
 
-@register("cost", "sad", WindowADParams)
+@register("cost", "sad", WindowADParams, traits=StageTraits(fused_wta=_windowed_truncated_ad_wta))
 def sad_cost(state: MatchState, p: WindowADParams) -> None:
     """Sum of absolute differences over a window (reported as the window mean), O(1) per entry.
 
@@ -191,9 +191,6 @@ def sad_cost(state: MatchState, p: WindowADParams) -> None:
     _windowed_truncated_ad(state, p)
 
 
-sad_cost.fused_wta = _windowed_truncated_ad_wta
-
-
 @dataclass(frozen=True)
 class STADParams:
     window: tuple[int, int] = param((9, 9), "window (height, width), odd", unit="px", low=1, high=101)
@@ -203,7 +200,7 @@ class STADParams:
         check_odd_window("cost.window", self.window)
 
 
-@register("cost", "stad", STADParams)
+@register("cost", "stad", STADParams, traits=StageTraits(fused_wta=_windowed_truncated_ad_wta))
 def stad_cost(state: MatchState, p: STADParams) -> None:
     """Sum of truncated absolute differences over a window (window mean), O(1) per entry.
 
@@ -211,9 +208,6 @@ def stad_cost(state: MatchState, p: STADParams) -> None:
     lies on another surface near depth edges (Scharstein & Szeliski 2002, §3.1).
     """
     _windowed_truncated_ad(state, p)
-
-
-stad_cost.fused_wta = _windowed_truncated_ad_wta
 
 
 @dataclass(frozen=True)
@@ -378,26 +372,6 @@ def _census_strings(state: MatchState, window: tuple[int, int]) -> tuple[np.ndar
             kc.census_transform(np.ascontiguousarray(state.gray("right")), wh // 2, ww // 2))
 
 
-@register("cost", "census", CensusParams)
-def census_cost(state: MatchState, p: CensusParams) -> None:
-    """Hamming distance of census transforms (Zabih & Woodfill 1994) on the grey images.
-
-    Each pixel becomes a bit string (neighbour darker than the centre); the cost is the
-    popcount of the XOR. Robust to monotonic radiometric changes between the views; larger
-    windows are more discriminative and slower. The default for SGM. Range [0, n − 1].
-    """
-    wh, ww = p.window
-    left, right = _census_strings(state, p.window)
-    state.cost_max = float(wh * ww - 1)
-    dtype = np.uint8 if state.integer_cost_ok else np.float32
-    state.cost = kc.hamming_volume(left, right, state.min_disp, state.ndisp, state.cost_max, dtype)
-
-
-# With ``integer_cost_ok`` the Hamming distances stay uint8 (1 byte per cell; read by the
-# memory planner, stereocli.match.pipeline.volume_copies).
-census_cost.integer_cost_itemsize = 1
-
-
 def _census_windowed(state: MatchState, p: CensusParams, runs) -> tuple[np.ndarray, float]:
     """Census Hamming costs on the runs of a windowed SGM only (ragged uint8, see
     :func:`stereocli.match.kernels.sgm_window.window_runs`), honouring ``right_valid``;
@@ -410,7 +384,21 @@ def _census_windowed(state: MatchState, p: CensusParams, runs) -> tuple[np.ndarr
     return kc.hamming_runs(left, right, state.min_disp, cost_max, run_lo, run_hi, offset, n, valid), cost_max
 
 
-census_cost.windowed = _census_windowed
+# With ``state.wants.integer_cost`` the Hamming distances stay uint8 (1 byte per cell).
+@register("cost", "census", CensusParams,
+          traits=StageTraits(integer_cost_itemsize=1, windowed=_census_windowed))
+def census_cost(state: MatchState, p: CensusParams) -> None:
+    """Hamming distance of census transforms (Zabih & Woodfill 1994) on the grey images.
+
+    Each pixel becomes a bit string (neighbour darker than the centre); the cost is the
+    popcount of the XOR. Robust to monotonic radiometric changes between the views; larger
+    windows are more discriminative and slower. The default for SGM. Range [0, n − 1].
+    """
+    wh, ww = p.window
+    left, right = _census_strings(state, p.window)
+    state.cost_max = float(wh * ww - 1)
+    dtype = np.uint8 if state.wants.integer_cost else np.float32
+    state.cost = kc.hamming_volume(left, right, state.min_disp, state.ndisp, state.cost_max, dtype)
 
 
 @dataclass(frozen=True)

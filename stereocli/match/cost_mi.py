@@ -21,11 +21,11 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from numba import njit, prange
 
-from ..registry import param, register
+from ..registry import StageTraits, param, register
+from .kernels.costs import mi_volume
 from .kernels.maps import lr_check
-from .state import MatchState
+from .state import MatchState, Wants
 
 
 @dataclass(frozen=True)
@@ -35,24 +35,6 @@ class HMIParams:
     bins: int = param(64, "intensity bins per image for the histograms", low=8, high=256)
     sigma: float = param(1.0, "Gaussian (7×7) smoothing of the histograms, in bins", unit="bins", low=0.1, high=10.0)
     seed: int = param(0, "seed of the random initial disparity (deterministic)", low=0, high=2**31 - 1)
-
-
-@njit(cache=True, parallel=True)
-def mi_volume(left_bins, right_bins, table, min_disp: int, ndisp: int, cost_max: float) -> np.ndarray:
-    """``cost[y, x, k] = table[left_bins[y, x], right_bins[y, x − (min_disp + k)]]``, ``cost_max``
-    where the right pixel is outside the image. Returns (H, W, D) float32."""
-    h, w = left_bins.shape
-    out = np.empty((h, w, ndisp), np.float32)
-    for y in prange(h):
-        for x in range(w):
-            row = table[left_bins[y, x]]
-            for k in range(ndisp):
-                xr = x - (min_disp + k)
-                if xr < 0 or xr >= w:
-                    out[y, x, k] = cost_max
-                else:
-                    out[y, x, k] = row[right_bins[y, xr]]
-    return out
 
 
 def _bins(gray: np.ndarray, bins: int) -> np.ndarray:
@@ -91,14 +73,15 @@ def _round(left_g, right_g, disp, min_disp, ndisp, p: HMIParams, want_right: boo
     lb, rb = _bins(left_g, p.bins), _bins(right_g, p.bins)
     table = mi_table(lb, rb, disp, p.bins, p.sigma)
     cmax = float(table.max())
-    st = MatchState(left_g, right_g, min_disp, ndisp, want_right=want_right)
+    st = MatchState(left_g, right_g, min_disp, ndisp, wants=Wants(right=want_right))
     st.cost = mi_volume(lb, rb, table, min_disp, ndisp, cmax)
     st.cost_max = cmax
     run_sgm(st, SGMParams())
     return table, st
 
 
-@register("cost", "hmi", HMIParams)
+# Only its output volume counts: the nested levels are at most 1/4 of its size.
+@register("cost", "hmi", HMIParams, traits=StageTraits(volume_copies=0.0))
 def hmi_cost(state: MatchState, p: HMIParams) -> None:
     """Hierarchical mutual information (Hirschmüller 2008): a cost learnt from the pair itself.
 
@@ -146,4 +129,3 @@ def _resize_disp(disp: np.ndarray, w: int, h: int) -> np.ndarray:
     ys = np.minimum((np.arange(h) * disp.shape[0] / h).astype(np.int64), disp.shape[0] - 1)
     xs = np.minimum((np.arange(w) * disp.shape[1] / w).astype(np.int64), disp.shape[1] - 1)
     return (disp[ys][:, xs] * np.float32(scale)).astype(np.float32)
-hmi_cost.volume_copies = 0.0  # only its output volume (the nested levels are ≤ 1/4 size)

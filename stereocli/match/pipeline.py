@@ -11,11 +11,14 @@ workers: :func:`prepare` (checks, preprocess, strip plan) → :func:`run_strip` 
 a cropped state in, the kept rows out) → :func:`finish` (stitch in plan order, map
 refinements). :func:`match_pair` is exactly these three in one process.
 
+What the pipeline knows about a stage comes from its :class:`~stereocli.registry.StageTraits`
+only; it never tests a stage's name.
+
 Fused cost + WTA: a local pipeline ``cost → wta`` never needs the whole (H, W, D) volume, only
 each pixel's winner. When :func:`fused_cost_wta` finds that the cost stage offers a fused
-kernel (a ``fused_wta`` attribute on its function: ``sad``, ``stad``), there is no
-aggregation, the optimizer is ``wta``, no right-view disparity is wanted (``want_right``,
-e.g. ``lr_check``) and every volume refinement (``needs_cost``) offers an ``on_winner_costs``
+kernel (the ``fused_wta`` trait: ``sad``, ``stad``), there is no aggregation, the optimizer is
+a plain winner-take-all (``winner_take_all``: ``wta``), no right-view disparity is wanted
+(e.g. ``lr_check``) and every volume refinement (``needs_cost``) offers an ``on_winner_costs``
 variant (``single_matching_phase``, ``subpixel``), the strip runs the fused kernel and those
 variants instead (timing key ``cost.<name>+optimizer.wta``). Otherwise, e.g. with
 ``uniqueness`` or ``confidence`` in the list, it falls back to the volume path. Both paths
@@ -25,8 +28,7 @@ volume path, so the plan does not depend on it).
 
 Integer winners: the volume refinements (``subpixel``) run before every map stage, so a map
 stage sees sub-pixel maps. A stage that wants the optimizer's integer maps instead says so
-with a ``keeps_integer(params) -> bool`` attribute on its function (``lr_check`` with
-``compare: integer``); the pipeline then copies ``disparity``/``disparity_right`` into
+with its ``keeps_integer`` trait (``lr_check`` with ``compare: integer``); the pipeline then copies ``disparity``/``disparity_right`` into
 ``integer_disparity``/``integer_disparity_right`` right after the optimizer, before the
 volume refinements, and stitches them with the maps (two extra (H, W) float32 maps).
 """
@@ -34,23 +36,20 @@ volume refinements, and stitches them with the maps (two extra (H, W) float32 ma
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable
 
 import numpy as np
 
-from ..config import PipelineConfig
 from ..errors import DataError, MemoryBudgetError
-from .allocator import keep_freed_memory
+from .config import PipelineConfig
 from .cost import run_cost_stage
-from .kernels.volume import wta_right
+from .kernels.winners import wta_right
 from .refine import clear_invalid_left
-from .state import MatchState
+from .state import MatchState, Wants
 
 #: Use fused cost + WTA kernels when the pipeline allows it (False forces the volume path).
 FUSED = True
-
-keep_freed_memory()  # large buffers stay in the process between pairs (see .allocator)
 
 GIB = 1024.0**3
 #: Interpreter, numpy/numba/OpenCV libraries and compiled kernels (measured RSS before matching).
@@ -72,31 +71,37 @@ class MatchResult:
 def volume_copies(config: PipelineConfig) -> float:
     """Peak number of (H, W, D) float32-sized volumes alive at once.
 
-    Each stage function may carry a ``volume_copies`` attribute: the extra volumes it holds
-    beside its input (float32 units, so a uint16 copy counts 0.5). Cost stages have no input
-    volume and default to 0 (just their output); other stages default to 1. When the cost
-    stage can leave an integer volume (``integer_cost_itemsize``: bytes per cell) and it goes
-    straight to an optimizer that accepts one (``accepts_integer_cost``), that volume counts
-    at its own size and the optimizer's extra is its ``integer_volume_copies``.
+    Each stage's ``volume_copies`` trait gives the extra volumes it holds beside its input
+    (float32 units, so a uint16 copy counts 0.5); undeclared, a cost stage (no input volume)
+    counts 0 and the others 1. When the cost stage can leave an integer volume
+    (``integer_cost_itemsize``: bytes per cell) and it goes straight to an optimizer that
+    accepts one (``accepts_integer_cost``), that volume counts at its own size and the
+    optimizer's extra is its ``integer_volume_copies``.
     """
-    optimizer = config.optimizer.stage.func
-    itemsize = getattr(config.cost.stage.func, "integer_cost_itemsize", None)
-    if itemsize and not config.aggregation and getattr(optimizer, "accepts_integer_cost", False):
-        return itemsize / 4.0 + getattr(optimizer, "integer_volume_copies", getattr(optimizer, "volume_copies", 1.0))
-    calls = [config.cost, *config.aggregation, config.optimizer]
-    extra = [getattr(c.stage.func, "volume_copies", 0.0 if c.stage.kind == "cost" else 1.0) for c in calls]
-    return 1.0 + max(extra)
+    optimizer = config.optimizer.stage.traits
+    itemsize = config.cost.stage.traits.integer_cost_itemsize
+    if itemsize and not config.aggregation and optimizer.accepts_integer_cost:
+        extra = optimizer.integer_volume_copies
+        return itemsize / 4.0 + (extra if extra is not None else _extra_volumes(config.optimizer))
+    return 1.0 + max(_extra_volumes(c) for c in [config.cost, *config.aggregation, config.optimizer])
+
+
+def _extra_volumes(call) -> float:
+    declared = call.stage.traits.volume_copies
+    if declared is not None:
+        return declared
+    return 0.0 if call.stage.kind == "cost" else 1.0
 
 
 def estimate_memory(config: PipelineConfig, height: int, width: int, ndisp: int) -> float:
     """Estimated peak bytes for one strip of ``height`` rows (volumes + image-sized buffers).
 
-    An optimizer may add fixed per-strip buffers through a ``buffer_bytes(params, width, ndisp)``
-    attribute (e.g. SGM's path-cost rows).
+    An optimizer may add fixed per-strip buffers through its ``buffer_bytes`` trait (e.g.
+    SGM's path-cost rows).
     """
     volume = float(height) * width * ndisp * 4
     images = float(height) * width * 4 * 24  # images, census strings, disparities, masks
-    buffers = getattr(config.optimizer.stage.func, "buffer_bytes", None)
+    buffers = config.optimizer.stage.traits.buffer_bytes
     fixed = RUNTIME_BASE + (float(buffers(config.optimizer.params, width, ndisp)) if buffers else 0.0)
     return volume * volume_copies(config) + images + fixed
 
@@ -152,21 +157,22 @@ class StripResult:
     disparity: np.ndarray  # (y1 - y0, W) px, +inf invalid
     disparity_right: np.ndarray | None = None
     confidence: np.ndarray | None = None
-    integer_disparity: np.ndarray | None = None  # the optimizer's maps, if ``state.keep_integer``
+    integer_disparity: np.ndarray | None = None  # the optimizer's maps, if ``state.wants.integer_maps``
     integer_disparity_right: np.ndarray | None = None
     extras: dict = field(default_factory=dict)
     timings: dict[str, float] = field(default_factory=dict)
 
 
 def _refinements(config: PipelineConfig, keep_invalid: bool) -> list:
-    # --keep-invalid drops every hole-filling stage (registered with fills_holes=True).
-    return [c for c in config.refinement if not (keep_invalid and c.stage.fills_holes)]
+    # --keep-invalid drops every hole-filling stage (the fills_holes trait).
+    return [c for c in config.refinement if not (keep_invalid and c.stage.traits.fills_holes)]
 
 
 def _keeps_integer(refinements: list) -> bool:
-    """True when some refinement reads the optimizer's integer maps (a ``keeps_integer(params)``
-    attribute on its function that returns True, e.g. ``lr_check`` with ``compare: integer``)."""
-    return any(getattr(c.stage.func, "keeps_integer", lambda params: False)(c.params) for c in refinements)
+    """True when some refinement reads the optimizer's integer maps (its ``keeps_integer``
+    trait says so for its params, e.g. ``lr_check`` with ``compare: integer``)."""
+    return any(c.stage.traits.keeps_integer is not None and c.stage.traits.keeps_integer(c.params)
+               for c in refinements)
 
 
 def prepare(
@@ -197,7 +203,7 @@ def prepare(
     shape = left.shape[:2]
     timings: dict[str, float] = {}
     refinements = _refinements(config, keep_invalid)
-    want_right = want_right or any(c.stage.needs_right for c in refinements)
+    want_right = want_right or any(c.stage.traits.needs_right for c in refinements)
     state = MatchState(
         left=to_float_image(np.ascontiguousarray(left)),
         right=to_float_image(np.ascontiguousarray(right)),
@@ -205,9 +211,7 @@ def prepare(
         ndisp=int(ndisp),
         left_valid=_as_valid(left_valid, shape, "left"),
         right_valid=_as_valid(right_valid, shape, "right"),
-        want_right=want_right,
-        want_confidence=want_confidence,
-        keep_integer=_keeps_integer(refinements),
+        wants=Wants(right=want_right, confidence=want_confidence, integer_maps=_keeps_integer(refinements)),
         threads=config.runtime.threads,
     )
     for call in config.preprocess:
@@ -238,12 +242,12 @@ def run_strip(sub: MatchState, config: PipelineConfig, y0: int, y1: int, *,
     """
     _set_threads(config.runtime.threads)
     timings: dict[str, float] = {}
-    volume_stages = [c for c in _refinements(config, keep_invalid) if c.stage.needs_cost]
+    volume_stages = [c for c in _refinements(config, keep_invalid) if c.stage.traits.needs_cost]
     _run_volume_stages(sub, config, volume_stages, timings)
     keep = slice(y0 - sub.row_offset, y1 - sub.row_offset)
     whole = keep.start == 0 and keep.stop == sub.shape[0]
     crop = lambda m: None if m is None else (m if whole else np.ascontiguousarray(m[keep]))  # noqa: E731
-    return StripResult(y0, y1, crop(sub.disparity), crop(sub.disparity_right) if sub.want_right else None,
+    return StripResult(y0, y1, crop(sub.disparity), crop(sub.disparity_right) if sub.wants.right else None,
                        crop(sub.confidence), crop(sub.integer_disparity), crop(sub.integer_disparity_right),
                        sub.extras, timings)
 
@@ -256,12 +260,12 @@ def finish(prepared: PreparedPair, results: list[StripResult], config: PipelineC
         raise ValueError("strip results do not match the strip plan")
     timings = dict(prepared.timings)
     disparity = np.empty(shape, np.float32)
-    disparity_right = np.empty(shape, np.float32) if state.want_right else None
+    disparity_right = np.empty(shape, np.float32) if state.wants.right else None
     confidence = None
     integer = {"integer_disparity": None, "integer_disparity_right": None}
     for r in results:
         disparity[r.y0:r.y1] = r.disparity
-        if state.want_right:
+        if state.wants.right:
             disparity_right[r.y0:r.y1] = r.disparity_right
         for key in integer:
             part = getattr(r, key)
@@ -277,7 +281,7 @@ def finish(prepared: PreparedPair, results: list[StripResult], config: PipelineC
         for key, seconds in r.timings.items():
             timings[key] = timings.get(key, 0.0) + seconds
 
-    map_stages = [c for c in _refinements(config, prepared.keep_invalid) if not c.stage.needs_cost]
+    map_stages = [c for c in _refinements(config, prepared.keep_invalid) if not c.stage.traits.needs_cost]
     state.cost = None
     state.disparity, state.disparity_right, state.confidence = disparity, disparity_right, confidence
     state.integer_disparity, state.integer_disparity_right = integer.values()
@@ -336,8 +340,8 @@ def match_pair(
     want_confidence : run the ``confidence`` stages (they are skipped otherwise, so a map
         nobody asked for costs nothing).
     strip_map : runs the strips of a prepared pair and returns their results in plan order
-        (default :func:`run_strips`, in this process); e.g. spread over Dask workers by
-        :func:`stereocli.match.split.cluster_strip_map`. The output does not depend on it.
+        (default :func:`run_strips`, in this process); e.g. spread over Dask workers by the
+        jobs layer (:mod:`stereocli.jobs`). The output does not depend on it.
 
     Returns
     -------
@@ -351,17 +355,16 @@ def match_pair(
 
 
 def _strip_state(state: MatchState, a: int, b: int) -> MatchState:
+    # Each strip state gets its own Wants: the strip's volume stages set per-strip requests.
+    wants = replace(state.wants)
     if a == 0 and b == state.shape[0]:
         return MatchState(state.left, state.right, state.min_disp, state.ndisp, state.left_valid,
-                          state.right_valid, want_right=state.want_right, keep_integer=state.keep_integer,
-                          want_confidence=state.want_confidence, threads=state.threads, extras=state.extras,
+                          state.right_valid, wants=wants, threads=state.threads, extras=state.extras,
                           gray_cache=state.gray_cache)
     crop = lambda m: None if m is None else np.ascontiguousarray(m[a:b])  # noqa: E731
     return MatchState(crop(state.left), crop(state.right), state.min_disp, state.ndisp,
-                      crop(state.left_valid), crop(state.right_valid), want_right=state.want_right,
-                      keep_integer=state.keep_integer, want_confidence=state.want_confidence, row_offset=a,
-                      threads=state.threads,
-                      extras=dict(state.extras))
+                      crop(state.left_valid), crop(state.right_valid), wants=wants, row_offset=a,
+                      threads=state.threads, extras=dict(state.extras))
 
 
 def _stage_reads(call, what: str, state: MatchState | None) -> bool:
@@ -369,7 +372,7 @@ def _stage_reads(call, what: str, state: MatchState | None) -> bool:
     # keeps: ``needs_second_best`` (``winner.second``, the best cost beyond ±1 of the winner)
     # or ``needs_right_costs`` (``winner.costs_right``); without a state, any stage that may
     # read it counts.
-    needs = getattr(call.stage.func, what, None)
+    needs = getattr(call.stage.traits, what)
     return needs is not None and (state is None or needs(state, call.params))
 
 
@@ -377,17 +380,17 @@ def fused_cost_wta(config: PipelineConfig, volume_stages: list, want_right: bool
                    state: MatchState | None = None) -> Callable | None:
     """The cost stage's fused cost + WTA function if this strip may skip the volume, else None.
 
-    Conditions (module docstring): :data:`FUSED`, a ``fused_wta`` attribute on the cost stage,
-    no aggregation, the ``wta`` optimizer, no right-view disparity wanted, and an
+    Conditions (module docstring): :data:`FUSED`, a ``fused_wta`` trait on the cost stage,
+    no aggregation, a ``winner_take_all`` optimizer, no right-view disparity wanted, and an
     ``on_winner_costs`` variant on every volume refinement in ``volume_stages``, each stage at
     most once (the winner costs cover the hypotheses within 1 of the WTA winner: enough for one
     sub-pixel fit and any number of claim checks, not for a second fit around a moved value).
     """
-    fused = getattr(config.cost.stage.func, "fused_wta", None)
+    fused = config.cost.stage.traits.fused_wta
     names = [c.stage.name for c in volume_stages]
-    if (not FUSED or fused is None or config.aggregation or config.optimizer.stage.name != "wta"
+    if (not FUSED or fused is None or config.aggregation or not config.optimizer.stage.traits.winner_take_all
             or want_right or len(set(names)) != len(names)
-            or any(not hasattr(c.stage.func, "on_winner_costs") or _stage_reads(c, "needs_second_best", state)
+            or any(c.stage.traits.on_winner_costs is None or _stage_reads(c, "needs_second_best", state)
                    for c in volume_stages)):
         return None
     return fused
@@ -395,7 +398,7 @@ def fused_cost_wta(config: PipelineConfig, volume_stages: list, want_right: bool
 
 def _run_volume_stages(sub: MatchState, config: PipelineConfig, volume_stages, timings) -> None:
     call = config.cost
-    fused = fused_cost_wta(config, volume_stages, sub.want_right, sub)
+    fused = fused_cost_wta(config, volume_stages, sub.wants.right, sub)
     if fused is not None:
         t0 = time.perf_counter()
         fused(sub, call.params, bool(volume_stages))  # winner costs only if a refinement reads them
@@ -403,43 +406,49 @@ def _run_volume_stages(sub: MatchState, config: PipelineConfig, volume_stages, t
         timings[key] = timings.get(key, 0.0) + time.perf_counter() - t0
         _keep_integer_maps(sub)
         for c in volume_stages:
-            _timed(timings, f"refinement.{c.stage.name}", c.stage.func.on_winner_costs, sub, c.params)
+            _timed(timings, f"refinement.{c.stage.name}", c.stage.traits.on_winner_costs, sub, c.params)
         sub.winner = None
         return
+    optimizer = config.optimizer
+    owns_cost = optimizer.stage.traits.runs_cost
     # A cost stage may leave a uint8/uint16 volume when its consumer says it accepts one.
-    sub.integer_cost_ok = not config.aggregation and getattr(config.optimizer.stage.func,
-                                                             "accepts_integer_cost", False)
-    sub.cost_call = call
-    # An optimizer that computes the costs itself (coarse-to-fine SGM: on its windows only)
-    # says so with ``runs_cost(params)``; it then honours ``right_valid`` too. Aggregation
-    # stages need the whole volume, so with them the cost stage always runs here.
-    runs_cost = getattr(config.optimizer.stage.func, "runs_cost", lambda params: False)(config.optimizer.params)
-    if config.aggregation or not runs_cost:
+    sub.wants.integer_cost = not config.aggregation and optimizer.stage.traits.accepts_integer_cost
+    # An optimizer that owns the cost computation (coarse-to-fine SGM: on its windows only)
+    # gets the cost stage as an argument and, when its params say so, runs it itself; it then
+    # honours ``right_valid`` too. Aggregation stages need the whole volume, so with them the
+    # cost stage always runs here.
+    if config.aggregation or owns_cost is None or not owns_cost(optimizer.params):
         _timed(timings, f"cost.{call.stage.name}", run_cost_stage, sub, call)
     for call in config.aggregation:
         _timed(timings, f"aggregation.{call.stage.name}", call.stage.func, sub, call.params)
-    call = config.optimizer
     # An optimizer that never builds the whole volume (SGM's coarse-to-fine search) leaves
     # ``winner`` instead when every volume refinement can work from it.
-    sub.volume_needed = any(not hasattr(c.stage.func, "on_winner_costs") for c in volume_stages)
-    sub.want_second = any(_stage_reads(c, "needs_second_best", sub) for c in volume_stages)
-    sub.want_right_costs = sub.want_right and any(_stage_reads(c, "needs_right_costs", sub) for c in volume_stages)
-    _timed(timings, f"optimizer.{call.stage.name}", call.stage.func, sub, call.params)
-    if sub.want_right and sub.disparity_right is None:
+    sub.wants.volume = any(c.stage.traits.on_winner_costs is None for c in volume_stages)
+    sub.wants.second_best = any(_stage_reads(c, "needs_second_best", sub) for c in volume_stages)
+    sub.wants.right_costs = sub.wants.right and any(_stage_reads(c, "needs_right_costs", sub)
+                                                    for c in volume_stages)
+    t0 = time.perf_counter()
+    if owns_cost is None:
+        optimizer.stage.func(sub, optimizer.params)
+    else:
+        optimizer.stage.func(sub, optimizer.params, cost=config.cost)
+    key = f"optimizer.{optimizer.stage.name}"
+    timings[key] = timings.get(key, 0.0) + time.perf_counter() - t0
+    if sub.wants.right and sub.disparity_right is None:
         t0 = time.perf_counter()
         sub.disparity_right = wta_right(sub.cost, sub.min_disp, np.float32(sub.cost_max))
         timings["optimizer.right_view"] = timings.get("optimizer.right_view", 0.0) + time.perf_counter() - t0
     _keep_integer_maps(sub)
     on_winner = sub.cost is None and sub.winner is not None
     for call in volume_stages:
-        func = call.stage.func.on_winner_costs if on_winner else call.stage.func
+        func = call.stage.traits.on_winner_costs if on_winner else call.stage.func
         _timed(timings, f"refinement.{call.stage.name}", func, sub, call.params)
     sub.cost = None
     sub.winner = None
 
 
 def _keep_integer_maps(sub: MatchState) -> None:
-    if sub.keep_integer:  # copies: the volume refinements may edit the maps in place
+    if sub.wants.integer_maps:  # copies: the volume refinements may edit the maps in place
         sub.integer_disparity = sub.disparity.copy()
         if sub.disparity_right is not None:
             sub.integer_disparity_right = sub.disparity_right.copy()

@@ -11,11 +11,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ConfigError
-from ..registry import param, register
+from ..registry import StageTraits, param, register
 from .cost import left_guide
 from .kernels import maps as km
 from .kernels import refine as kr
-from .kernels.volume import subpixel_left, subpixel_right
+from .kernels.winners import subpixel_left, subpixel_right
 from .state import MatchState
 
 
@@ -25,26 +25,8 @@ class SubpixelParams:
     right: bool = param(True, "also refine the right-view disparity (the --right output and what lr_check then compares with); false keeps its integer winners")
 
 
-@register("refinement", "subpixel", SubpixelParams, needs_cost=True)
-def subpixel(state: MatchState, p: SubpixelParams) -> None:
-    """Sub-pixel disparity from the costs around the winner (left view; right view too if kept).
-
-    Parabola suits smooth (squared-like) costs such as SGM sums; equiangular (a symmetric V)
-    suits absolute-difference-like costs and has less bias towards integers on them. With
-    ``right: false`` the right view keeps its integer winners: ``lr_check`` then compares the
-    sub-pixel left map with them, which on MiddEval3 and Middlebury 2001/2003 scores as well as
-    comparing two sub-pixel maps (README), and the windowed SGM skips keeping the right view's
-    neighbouring sums.
-    """
-    equi = p.method == "equiangular"
-    state.disparity = subpixel_left(state.cost, state.disparity, state.min_disp, equi)
-    if state.disparity_right is not None and p.right:
-        state.disparity_right = subpixel_right(state.cost, state.disparity_right, state.min_disp, equi)
-
-
 def _subpixel_on_winner_costs(state: MatchState, p: SubpixelParams) -> None:
-    # No volume (fused cost + WTA, windowed SGM; stereocli.match.pipeline): the same fit on the
-    # costs kept around each winner, for the right view too when they were kept.
+    """the same fit on the costs kept around each winner (right view too, when kept)"""
     from .optimize.wta import subpixel_on_winner
 
     equi = p.method == "equiangular"
@@ -54,10 +36,28 @@ def _subpixel_on_winner_costs(state: MatchState, p: SubpixelParams) -> None:
                                                    equi, right=True)
 
 
-subpixel.on_winner_costs = _subpixel_on_winner_costs
-# Read by the pipeline: whether the optimizer should keep the right view's sums around its
-# winners (``WinnerCosts.costs_right``) for this stage.
-subpixel.needs_right_costs = lambda state, p: p.right
+def _refines_right_view(state: MatchState, p: SubpixelParams) -> bool:
+    """when right: true (the right view's costs around its winners)"""
+    return p.right
+
+
+@register("refinement", "subpixel", SubpixelParams,
+          traits=StageTraits(needs_cost=True, on_winner_costs=_subpixel_on_winner_costs,
+                             needs_right_costs=_refines_right_view))
+def subpixel(state: MatchState, p: SubpixelParams) -> None:
+    """Sub-pixel disparity from the costs around the winner (left view; right view too if kept).
+
+    Parabola suits smooth (squared-like) costs such as SGM sums; equiangular (a symmetric V)
+    suits absolute-difference-like costs and has less bias towards integers on them. With
+    ``right: false`` the right view keeps its integer winners: ``lr_check`` then compares the
+    sub-pixel left map with them, which on MiddEval3 and Middlebury 2001/2003 scores as well as
+    comparing two sub-pixel maps (docs/benchmarks.md), and the windowed SGM skips keeping the right view's
+    neighbouring sums.
+    """
+    equi = p.method == "equiangular"
+    state.disparity = subpixel_left(state.cost, state.disparity, state.min_disp, equi)
+    if state.disparity_right is not None and p.right:
+        state.disparity_right = subpixel_right(state.cost, state.disparity_right, state.min_disp, equi)
 
 
 @dataclass(frozen=True)
@@ -66,7 +66,13 @@ class LRCheckParams:
     compare: str = param("final", "which maps are checked: 'final' = the maps as refined so far (after subpixel); 'integer' = the optimizer's integer winners, before any sub-pixel step (Hosni et al. 2013), the rejected pixels being removed from the current map", choices=("final", "integer"))
 
 
-@register("refinement", "lr_check", LRCheckParams, needs_right=True)
+def _compares_integer(p: LRCheckParams) -> bool:
+    """when compare: integer"""
+    return p.compare == "integer"
+
+
+@register("refinement", "lr_check", LRCheckParams,
+          traits=StageTraits(needs_right=True, keeps_integer=_compares_integer))
 def lr_check(state: MatchState, p: LRCheckParams) -> None:
     """Left-right consistency check: invalidate pixels the right view's disparity contradicts.
 
@@ -89,9 +95,6 @@ def lr_check(state: MatchState, p: LRCheckParams) -> None:
     state.disparity = km.lr_check(state.disparity, state.disparity_right, float(p.max_diff))
 
 
-lr_check.keeps_integer = lambda p: p.compare == "integer"  # read by stereocli.match.pipeline
-
-
 @dataclass(frozen=True)
 class MedianParams:
     size: int = param(3, "window side (odd)", unit="px", low=3, high=15)
@@ -105,7 +108,7 @@ def median(state: MatchState, p: MedianParams) -> None:
     state.disparity = kr.median_valid(state.disparity, p.size // 2)
 
 
-@register("refinement", "fill", fills_holes=True)
+@register("refinement", "fill", traits=StageTraits(fills_holes=True))
 def fill(state: MatchState, params) -> None:
     """Fill invalid pixels along scanlines with the background (smaller) neighbouring disparity.
 
@@ -120,21 +123,24 @@ class UniquenessParams:
     ratio: float = param(0.05, "reject when a non-adjacent hypothesis costs less than best / (1 - ratio) (OpenCV uniquenessRatio / 100)", low=0.0, high=0.9)
 
 
-@register("refinement", "uniqueness", UniquenessParams, needs_cost=True)
-def uniqueness(state: MatchState, p: UniquenessParams) -> None:
-    """Invalidate ambiguous pixels: the winner must beat every hypothesis more than 1 px away
-    by the margin ``ratio`` (OpenCV's uniqueness check, on the optimised costs)."""
-    state.disparity = kr.uniqueness(state.cost, state.disparity, state.min_disp, float(p.ratio))
-
-
 def _uniqueness_on_winner_costs(state: MatchState, p: UniquenessParams) -> None:
-    # Windowed SGM: the best cost beyond ±1 of the winner, among the hypotheses searched.
+    """the best cost beyond ±1 of the winner among the hypotheses searched (windowed SGM)"""
     w = state.winner
     state.disparity = kr.uniqueness_from_second(w.costs[..., 1], w.second, state.disparity, float(p.ratio))
 
 
-uniqueness.on_winner_costs = _uniqueness_on_winner_costs
-uniqueness.needs_second_best = lambda state, params: True
+def _always(state: MatchState, params) -> bool:
+    """always"""
+    return True
+
+
+@register("refinement", "uniqueness", UniquenessParams,
+          traits=StageTraits(needs_cost=True, on_winner_costs=_uniqueness_on_winner_costs,
+                             needs_second_best=_always))
+def uniqueness(state: MatchState, p: UniquenessParams) -> None:
+    """Invalidate ambiguous pixels: the winner must beat every hypothesis more than 1 px away
+    by the margin ``ratio`` (OpenCV's uniqueness check, on the optimised costs)."""
+    state.disparity = kr.uniqueness(state.cost, state.disparity, state.min_disp, float(p.ratio))
 
 
 @dataclass(frozen=True)
@@ -143,25 +149,10 @@ class ConfidenceParams:
     margin_scale: float = param(0.1, "cost margin 1 - best/second at which the uniqueness factor reaches 1", low=0.001, high=1.0)
 
 
-@register("refinement", "confidence", ConfidenceParams, needs_cost=True)
-def confidence(state: MatchState, p: ConfidenceParams) -> None:
-    """Per-pixel confidence in [0, 1] (``match --confidence``): cost uniqueness × LR agreement.
-
-    ``min(1, (1 − c_best/c_second)/margin_scale) · exp(−|d_L − d_R|/lr_scale)``, 0 where invalid;
-    c_second is the best hypothesis more than 1 px from the winner. Uses the right-view map when
-    one exists (e.g. ``lr_check`` in the list); place it after ``subpixel``.
-    """
-    if not state.want_confidence:
-        return  # nobody asked for the map (match --confidence / match_pair(want_confidence=True))
-    right = state.disparity_right if state.disparity_right is not None else np.zeros((0, 0), np.float32)
-    state.confidence = kr.confidence(state.cost, state.disparity, right, state.min_disp,
-                                     float(p.lr_scale), float(p.margin_scale))
-
-
 def _confidence_on_winner_costs(state: MatchState, p: ConfidenceParams) -> None:
-    # Windowed SGM: uniqueness from the best cost beyond ±1 of the winner among the hypotheses
-    # searched (the coarse-to-fine window), the LR term as on the volume.
-    if not state.want_confidence:
+    """uniqueness from the best cost beyond ±1 of the winner among the hypotheses searched
+    (windowed SGM), the LR term as on the volume"""
+    if not state.wants.confidence:
         return
     w = state.winner
     right = state.disparity_right if state.disparity_right is not None else np.zeros((0, 0), np.float32)
@@ -169,8 +160,27 @@ def _confidence_on_winner_costs(state: MatchState, p: ConfidenceParams) -> None:
                                                  float(p.lr_scale), float(p.margin_scale))
 
 
-confidence.on_winner_costs = _confidence_on_winner_costs
-confidence.needs_second_best = lambda state, params: state.want_confidence
+def _confidence_wanted(state: MatchState, params) -> bool:
+    """when a confidence map is wanted (match --confidence)"""
+    return state.wants.confidence
+
+
+@register("refinement", "confidence", ConfidenceParams,
+          traits=StageTraits(needs_cost=True, on_winner_costs=_confidence_on_winner_costs,
+                             needs_second_best=_confidence_wanted))
+def confidence(state: MatchState, p: ConfidenceParams) -> None:
+    """Per-pixel confidence in [0, 1] (``match --confidence``): cost uniqueness × LR agreement.
+
+    ``min(1, (1 − c_best/c_second)/margin_scale) · exp(−|d_L − d_R|/lr_scale)``, 0 where invalid;
+    c_second is the best hypothesis more than 1 px from the winner. Uses the right-view map when
+    one exists (e.g. ``lr_check`` in the list); place it after ``subpixel``.
+    """
+    if not state.wants.confidence:
+        return  # nobody asked for the map (match --confidence / match_pair(want_confidence=True))
+    right = state.disparity_right if state.disparity_right is not None else np.zeros((0, 0), np.float32)
+    state.confidence = kr.confidence(state.cost, state.disparity, right, state.min_disp,
+                                     float(p.lr_scale), float(p.margin_scale))
+
 
 
 @dataclass(frozen=True)
@@ -203,7 +213,7 @@ class InterpolateParams:
     tol: float = param(1.0, "a hole is a mismatch when a right pixel maps back to it within tol", unit="px", low=0.0, high=10.0)
 
 
-@register("refinement", "interpolate", InterpolateParams, needs_right=True, fills_holes=True)
+@register("refinement", "interpolate", InterpolateParams, traits=StageTraits(needs_right=True, fills_holes=True))
 def interpolate(state: MatchState, p: InterpolateParams) -> None:
     """Classify holes as occluded or mismatched and fill them (Hirschmüller 2008 §2.5).
 

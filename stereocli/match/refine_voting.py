@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ConfigError
-from ..registry import param, register
+from ..registry import StageTraits, param, register
 from .cost import _channels, left_guide
 from .kernels import aggregation as ka
 from .kernels import voting as kv
@@ -42,7 +42,7 @@ class RegionVotingParams:
             raise ConfigError(f"refinement.region_voting: max_arm2 ({self.max_arm2}) must not exceed max_arm ({self.max_arm})")
 
 
-@register("refinement", "region_voting", RegionVotingParams, fills_holes=True)
+@register("refinement", "region_voting", RegionVotingParams, traits=StageTraits(fills_holes=True))
 def region_voting(state: MatchState, p: RegionVotingParams) -> None:
     """Iterative region voting (Mei et al. 2011): outliers take the dominant reliable disparity
     of their cross support region.
@@ -68,7 +68,8 @@ def region_voting(state: MatchState, p: RegionVotingParams) -> None:
     state.disparity = disp
 
 
-@register("refinement", "proper_interpolation", InterpolateParams, needs_right=True, fills_holes=True)
+@register("refinement", "proper_interpolation", InterpolateParams,
+          traits=StageTraits(needs_right=True, fills_holes=True))
 def proper_interpolation(state: MatchState, p: InterpolateParams) -> None:
     """Fill outliers from the nearest reliable pixels in 16 directions (Mei et al. 2011).
 

@@ -5,8 +5,8 @@ mutates ``state``:
 
 * preprocess: replaces ``left``/``right`` (same shape, float32).
 * cost: sets ``cost`` to a ``(H, W, D)`` C-contiguous float32 volume, ``D = ndisp``,
-  (or uint8/uint16 holding integer costs, if ``integer_cost_ok``: the pipeline sets it when
-  the volume goes straight to an optimizer marked ``accepts_integer_cost``, e.g. ``sgm``),
+  (or uint8/uint16 holding integer costs, if ``wants.integer_cost``: the pipeline sets it when
+  the volume goes straight to an optimizer whose traits say ``accepts_integer_cost``, e.g. ``sgm``),
   ``cost[y, x, k]`` = dissimilarity of left ``(x, y)`` and right ``(x - (min_disp + k), y)``,
   lower is better; entries whose right pixel falls outside the image (or outside a valid
   mask) hold the volume's maximum cost ``cost_max``.
@@ -17,22 +17,25 @@ mutates ``state``:
   That volume may be **uint16** instead of float32 (``sgm`` leaves its path-cost sums, with
   ``cost_max`` = 65535): every kernel that reads ``cost`` after the optimizer (sub-pixel,
   WTA, uniqueness, confidence, ``mask_invalid_right``) accepts float32 and uint16.
-* refinement: edits ``disparity`` (and ``disparity_right`` / ``confidence``); stages
-  registered with ``needs_cost=True`` run while ``cost`` is still available (inside each
-  row strip), the others on the full stitched map. When some refinement wants the
-  optimizer's own integer winners (``keep_integer``, e.g. ``lr_check`` with
-  ``compare: integer``), the pipeline copies ``disparity`` / ``disparity_right`` into
-  ``integer_disparity`` / ``integer_disparity_right`` right after the optimizer (and the right view), before any
+* refinement: edits ``disparity`` (and ``disparity_right`` / ``confidence``); stages whose
+  traits say ``needs_cost`` run while ``cost`` is still available (inside each row strip),
+  the others on the full stitched map. When some refinement wants the optimizer's own
+  integer winners (``wants.integer_maps``, e.g. ``lr_check`` with ``compare: integer``), the
+  pipeline copies ``disparity`` / ``disparity_right`` into ``integer_disparity`` /
+  ``integer_disparity_right`` right after the optimizer (and the right view), before any
   volume refinement moves them, and stitches them like the maps.
 
+What a stage reads about a stage is in its :class:`~stereocli.registry.StageTraits`; what the
+rest of the pipeline asks of a stage is in :attr:`MatchState.wants` (:class:`Wants`), set by
+the pipeline from the config and the requested outputs.
+
 Fused cost + WTA (see :mod:`stereocli.match.pipeline`): when a cost stage offers a
-``fused_wta(state, params, winner: bool)`` function, the pipeline is ``cost → wta`` with no
-aggregation, no right-view disparity is wanted and every ``needs_cost`` refinement offers an
-``on_winner_costs(state, params)`` variant, the volume is never built: ``fused_wta`` sets
-``disparity`` (exactly what cost + ``wta`` would give, honouring ``right_valid``) and, if
-``winner``, ``winner`` (:class:`WinnerCosts`, the volume entries around each winner); ``cost``
-stays None, and the refinements run their ``on_winner_costs`` variants, which must give the
-same result as on the volume.
+``fused_wta`` trait, the pipeline is ``cost → wta`` with no aggregation, no right-view
+disparity is wanted and every ``needs_cost`` refinement offers an ``on_winner_costs``
+variant, the volume is never built: ``fused_wta`` sets ``disparity`` (exactly what cost +
+``wta`` would give, honouring ``right_valid``) and, if asked, ``winner`` (:class:`WinnerCosts`,
+the volume entries around each winner); ``cost`` stays None, and the refinements run their
+``on_winner_costs`` variants, which must give the same result as on the volume.
 
 When the image is processed in row strips, ``row_offset`` is the strip's first row in the full
 image and ``rows_valid`` the slice of the strip's rows that is kept (the rest is overlap).
@@ -44,7 +47,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .kernels.cost import luma
+from .kernels.images import luma
 
 
 @dataclass
@@ -56,6 +59,19 @@ class WinnerCosts:
     costs_right: np.ndarray | None = None  # (H, W, 3) the same for the right-view winners (diagonal neighbours)
     disparity_right: np.ndarray | None = None  # (H, W) float32 right-view winners the costs belong to
     second: np.ndarray | None = None  # (H, W) float32 best cost more than 1 hypothesis from the winner (+inf if none)
+
+
+@dataclass
+class Wants:
+    """What later stages and the requested outputs need from the stages that run earlier."""
+
+    right: bool = False  # the right-view disparity (an output, or a stage with needs_right)
+    confidence: bool = False  # a confidence map (else the confidence stages skip)
+    integer_maps: bool = False  # the optimizer's integer maps, kept in ``integer_disparity[_right]``
+    integer_cost: bool = False  # the cost stage may leave a uint8/uint16 volume
+    volume: bool = True  # a later stage reads ``cost`` itself (else ``winner`` may stand in for it)
+    second_best: bool = False  # a later stage reads ``winner.second`` (uniqueness, confidence)
+    right_costs: bool = False  # a later stage reads ``winner.costs_right`` (sub-pixel of the right view)
 
 
 @dataclass
@@ -76,17 +92,10 @@ class MatchState:
     confidence: np.ndarray | None = None  # (H, W) float32 in [0, 1]
     integer_disparity: np.ndarray | None = None  # (H, W) float32: ``disparity`` as the optimizer left it (if keep_integer)
     integer_disparity_right: np.ndarray | None = None  # (H, W) float32: the same for ``disparity_right``
-    want_right: bool = False  # some later stage or output needs disparity_right
-    keep_integer: bool = False  # keep the optimizer's maps in ``integer_disparity``/``integer_disparity_right``
-    integer_cost_ok: bool = False  # the cost stage may leave a uint8/uint16 volume
-    want_confidence: bool = False  # a confidence map is wanted (else confidence stages skip)
-    row_offset: int = 0
+    wants: Wants = field(default_factory=Wants)  # what later stages and outputs need
+    row_offset: int = 0  # first image row of this (strip) state
     threads: int = 0  # 0 = numba default
     extras: dict = field(default_factory=dict)  # stage-to-stage data (e.g. raw costs for MI)
-    cost_call: object | None = None  # the configured cost StageCall (an optimizer may rerun it at a coarser scale)
-    volume_needed: bool = True  # a later stage reads ``cost`` itself (else ``winner`` may stand in for it)
-    want_second: bool = False  # a later stage reads ``winner.second`` (uniqueness, confidence)
-    want_right_costs: bool = False  # a later stage reads ``winner.costs_right`` (sub-pixel of the right view)
     gray_cache: dict = field(default_factory=dict, repr=False)  # which -> (image, its grey), see gray()
 
     @property

@@ -13,7 +13,7 @@ were not (0); ``match`` reads them so borders never match.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -60,6 +60,14 @@ def stereo_rectify(calib, *, alpha: float = 0.0, size: tuple[int, int] | None = 
         calib.K1, calib.D1, calib.K2, calib.D2, calib.image_size, calib.R, calib.T.reshape(3, 1),
         flags=cv2.CALIB_ZERO_DISPARITY, alpha=alpha, newImageSize=out_size)
     return Rectification(R1, R2, P1, P2, Q, out_size, tuple(int(v) for v in roi1), tuple(int(v) for v in roi2))
+
+
+def rectified_calibration(calib, *, alpha: float = 0.0, size: tuple[int, int] | None = None,
+                          rect: Rectification | None = None):
+    """A copy of ``calib`` with R1 R2 P1 P2 Q and ``rectified_size`` from ``rect``, or from
+    :func:`stereo_rectify` with ``alpha`` and ``size`` (w, h) when ``rect`` is None."""
+    rect = rect or stereo_rectify(calib, alpha=alpha, size=size)
+    return replace(calib, R1=rect.R1, R2=rect.R2, P1=rect.P1, P2=rect.P2, Q=rect.Q, rectified_size=rect.size)
 
 
 def _maps(calib, rect: Rectification, which: int) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:

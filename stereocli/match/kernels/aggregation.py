@@ -8,6 +8,7 @@ is outside the image hold ``cost_max``). Small pure-numpy references live in
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 from numba import njit, prange
 
@@ -439,4 +440,30 @@ def lc_plausibility(disp_k: np.ndarray, lab_l: np.ndarray, lab_r: np.ndarray, le
                 total += acc[k]
             for k in range(ndisp):
                 out[y, x, k] = np.float32(1.0 - acc[k] / total) if total > 0 else np.float32(1.0)
+    return out
+
+
+#: Most channels the OpenCV Python binding converts for its filters (a volume is fed as H×W×D).
+CV_MAX_CHANNELS = 128
+
+
+def box_filter_volume(cost: np.ndarray, radius_y: int, radius_x: int) -> np.ndarray:
+    """Mean of each cost slice over a (2·radius_y+1) × (2·radius_x+1) window, O(1) per pixel.
+
+    Windows are clipped at the image border (the mean is over the pixels inside). OpenCV's
+    running-sum box filter treats the D slices as channels (at most 128 per call), summing
+    in double precision, then each window sum is divided by its pixel count.
+    """
+    cost = np.ascontiguousarray(cost, dtype=np.float32)
+    h, w, nd = cost.shape
+    ksize = (2 * radius_x + 1, 2 * radius_y + 1)
+    count = cv2.boxFilter(np.ones((h, w), np.float32), -1, ksize, normalize=False,
+                          borderType=cv2.BORDER_CONSTANT)
+    inv = (1.0 / count).astype(np.float32)[..., None]
+    out = np.empty_like(cost)
+    for k0 in range(0, nd, CV_MAX_CHANNELS):
+        k1 = min(nd, k0 + CV_MAX_CHANNELS)
+        chunk = cost if (k0 == 0 and k1 == nd) else np.ascontiguousarray(cost[:, :, k0:k1])
+        total = cv2.boxFilter(chunk, -1, ksize, normalize=False, borderType=cv2.BORDER_CONSTANT)
+        np.multiply(total.reshape(h, w, k1 - k0), inv, out=out[:, :, k0:k1])
     return out

@@ -443,3 +443,134 @@ def plane_smooth(disp: np.ndarray, image: np.ndarray, radius: int, sigma_space: 
     planes = channel_planes(image)
     out = _line_fit_pass(disp, planes, radius, False, sigma_space, color_range, gate)
     return _line_fit_pass(out, planes, radius, True, sigma_space, color_range, gate)
+
+
+@njit(cache=True, inline="always")
+def _resolve_row(disp, out, y, claims, min_disp, ndisp, owner, owner_cost):
+    # One left→right pass over row y; claims[x] is the cost of left x at round(disp[y, x]).
+    w = disp.shape[1]
+    for xr in range(w):
+        owner[xr] = -1
+    for x in range(w):
+        d = disp[y, x]
+        if not np.isfinite(d):
+            continue
+        di = int(np.floor(d + 0.5))
+        k = di - min_disp
+        xr = x - di
+        if xr < 0 or xr >= w or k < 0 or k >= ndisp:
+            out[y, x] = INF
+            continue
+        c = claims[x]
+        o = owner[xr]
+        if o < 0:
+            owner[xr] = x
+            owner_cost[xr] = c
+        elif c < owner_cost[xr]:
+            out[y, o] = INF  # the earlier claim loses: a collision exposes a wrong match
+            owner[xr] = x
+            owner_cost[xr] = c
+        else:
+            out[y, x] = INF
+
+
+@njit(cache=True, parallel=True)
+def single_matching_phase_kernel(disp: np.ndarray, cost: np.ndarray, min_disp: int) -> np.ndarray:
+    """One left→right pass per row; when two left pixels claim the same right pixel, the one
+    with the lower cost keeps it and the other becomes +inf (Di Stefano, Marchionni &
+    Mattoccia, IVC 2004, §3). ``disp`` holds integer-valued float32 disparities (+inf invalid);
+    ``cost`` is the (H, W, D) volume (float32 or uint16).
+    """
+    h, w = disp.shape
+    nd = cost.shape[2]
+    out = disp.copy()
+    for y in prange(h):
+        owner = np.empty(w, np.int64)
+        owner_cost = np.empty(w, np.float32)
+        claims = np.zeros(w, np.float32)
+        for x in range(w):
+            d = disp[y, x]
+            if np.isfinite(d):
+                k = int(np.floor(d + 0.5)) - min_disp
+                if 0 <= k < nd:
+                    claims[x] = cost[y, x, k]
+        _resolve_row(disp, out, y, claims, min_disp, nd, owner, owner_cost)
+    return out
+
+
+@njit(cache=True, parallel=True)
+def single_matching_phase_winner_kernel(disp: np.ndarray, wdisp: np.ndarray, wcosts: np.ndarray,
+                                        min_disp: int, ndisp: int):
+    """:func:`single_matching_phase_kernel` with the claim costs read from the costs kept around
+    each WTA winner (fused cost + WTA path, :class:`~stereocli.match.state.WinnerCosts`).
+
+    Returns ``(out, missing)``; ``missing`` counts pixels whose ``round(disp)`` is more than 1
+    from the winner ``wdisp`` (none right after WTA or sub-pixel refinement).
+    """
+    h, w = disp.shape
+    out = disp.copy()
+    missing = np.zeros(h, np.int64)
+    for y in prange(h):
+        owner = np.empty(w, np.int64)
+        owner_cost = np.empty(w, np.float32)
+        claims = np.zeros(w, np.float32)
+        for x in range(w):
+            d = disp[y, x]
+            if np.isfinite(d):
+                k = int(np.floor(d + 0.5)) - min_disp
+                if 0 <= k < ndisp:
+                    j = k - (int(wdisp[y, x]) - min_disp) if np.isfinite(wdisp[y, x]) else 2
+                    if -1 <= j <= 1:
+                        claims[x] = wcosts[y, x, j + 1]
+                    else:
+                        missing[y] += 1
+        _resolve_row(disp, out, y, claims, min_disp, ndisp, owner, owner_cost)
+    return out, missing.sum()
+
+
+@njit(cache=True, parallel=True)
+def weighted_median_at(disp: np.ndarray, todo: np.ndarray, guide: np.ndarray, radius: int,
+                       sigma_s: float, sigma_c: float) -> np.ndarray:
+    """Bilateral-weighted median of the finite disparities around each ``todo`` pixel.
+
+    Weight exp(−Δs²/σ_s² − ‖ΔI‖²/σ_c²) with ‖ΔI‖ the colour distance in ``guide`` (H, W, C)
+    (Hosni et al. 2013, §4.1). Other pixels are copied unchanged.
+    """
+    h, w = disp.shape
+    nc = guide.shape[2]
+    out = disp.copy()
+    n = (2 * radius + 1) ** 2
+    inv_s = 1.0 / (sigma_s * sigma_s)
+    inv_c = 1.0 / (sigma_c * sigma_c)
+    for y in prange(h):
+        vals = np.empty(n, np.float32)
+        wts = np.empty(n, np.float64)
+        for x in range(w):
+            if not todo[y, x]:
+                continue
+            m = 0
+            total = 0.0
+            for qy in range(max(0, y - radius), min(h, y + radius + 1)):
+                for qx in range(max(0, x - radius), min(w, x + radius + 1)):
+                    v = disp[qy, qx]
+                    if not np.isfinite(v):
+                        continue
+                    dc = 0.0
+                    for c in range(nc):
+                        t = guide[y, x, c] - guide[qy, qx, c]
+                        dc += t * t
+                    wt = np.exp(-((qy - y) ** 2 + (qx - x) ** 2) * inv_s - dc * inv_c)
+                    vals[m] = v
+                    wts[m] = wt
+                    total += wt
+                    m += 1
+            if m == 0:
+                continue
+            order = np.argsort(vals[:m])
+            acc = 0.0
+            for i in range(m):
+                acc += wts[order[i]]
+                if acc >= 0.5 * total:
+                    out[y, x] = vals[order[i]]
+                    break
+    return out

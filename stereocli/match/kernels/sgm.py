@@ -27,11 +27,9 @@ Layout and numerics (see ``tests/test_kernels_sgm.py`` for the pure-numpy refere
   paths through the seam are therefore truncated at 48 rows (``S`` differs from whole-image
   passes only there; where a stripe and its overlap reach the image border, as on images of
   at most 96 rows, it is exact). Each thread then works on its own rows only, which the
-  later stages, parallel over rows in the same halves, read from the same core. (Until
-  session 9 both passes ran over the whole image, in two phases with the threads swapping
-  halves: as fast in the VM's usual state, but in its slow minutes, when data written on one
-  core took twice as long to reach the other, Tsukuba took 1.91× SGBM 3WAY's time against
-  1.61× with the stripes; README.)
+  later stages, parallel over rows in the same halves, read from the same core. This matters
+  most on machines where data written on one core is slow to reach another: two whole-image
+  passes with the threads swapping halves cost up to a fifth more time there.
 * The stripe plan does not depend on the thread count, and every element is computed by one
   thread with integer arithmetic in a fixed order, so the result is bit-identical for any
   thread count.
@@ -48,8 +46,8 @@ INT16_MAX = 32767
 #: Spare elements at the end of each thread's row buffers (at least 64 bytes), so the two
 #: threads' buffers never share a cache line. Without them the horizontal buffers of the two
 #: passes (a few dozen bytes each, written at every pixel) shared lines, which then travelled
-#: between the cores at every step: the kernel ran 10-15 % slower on two threads, and far
-#: slower when the VM's two vCPUs sat further apart.
+#: between the cores at every step, making the kernel 10-15 % slower on two threads (far
+#: slower where the cores sit further apart).
 GAP = 32
 
 # Directions (dy, dx) of the downward pass: the predecessor of (y, x) is (y - dy, x - dx).

@@ -439,3 +439,56 @@ def sgm_window(costs: np.ndarray, runs, nd: int, guide: np.ndarray, paths: int, 
     return {"disparity": disp, "disparity_right": disp_r if want_right else None, "costs": wcosts,
             "costs_right": wcosts_r if want_right and want_right_costs else None,
             "second": second if want_second else None, "total": total}
+
+
+@njit(cache=True, parallel=True)
+def square_min_max(coarse: np.ndarray, radius: int):
+    """Min and max of the finite values of ``coarse`` (2-D float32) over the (2r + 1)² square
+    around each pixel (separable: rows, then columns); +inf / −inf where none is finite."""
+    h, w = coarse.shape
+    rmin = np.empty((h, w), np.float32)
+    rmax = np.empty((h, w), np.float32)
+    for y in prange(h):
+        for x in range(w):
+            a = np.float32(np.inf)
+            b = np.float32(-np.inf)
+            for xx in range(max(0, x - radius), min(w, x + radius + 1)):
+                v = coarse[y, xx]
+                if np.isfinite(v):
+                    a = min(a, v)
+                    b = max(b, v)
+            rmin[y, x] = a
+            rmax[y, x] = b
+    lo = np.empty((h, w), np.float32)
+    hi = np.empty((h, w), np.float32)
+    for y in prange(h):
+        lo[y] = rmin[max(0, y - radius)]
+        hi[y] = rmax[max(0, y - radius)]
+        for yy in range(max(0, y - radius) + 1, min(h, y + radius + 1)):
+            for x in range(w):
+                lo[y, x] = min(lo[y, x], rmin[yy, x])
+                hi[y, x] = max(hi[y, x], rmax[yy, x])
+    return lo, hi
+
+
+@njit(cache=True, parallel=True)
+def upsample_windows(nmin, nmax, h: int, w: int, min_disp: int, ndisp: int, margin: int):
+    """(H, W) int32 ``lo``/``hi`` volume indices from the coarse range [nmin, nmax] of each
+    pixel's coarse parent (y // 2, x // 2): doubled, ± ``margin``; the full range where the
+    range is empty. Clipped to [0, D) and never empty."""
+    lo_map = np.empty((h, w), np.int32)
+    hi_map = np.empty((h, w), np.int32)
+    for y in prange(h):
+        for x in range(w):
+            a = nmin[y // 2, x // 2]
+            b = nmax[y // 2, x // 2]
+            if b >= a:
+                lo = int(2 * a) - margin - min_disp
+                hi = int(2 * b) + margin + 1 - min_disp
+            else:
+                lo = 0
+                hi = ndisp
+            lo = min(max(lo, 0), ndisp - 1)
+            lo_map[y, x] = lo
+            hi_map[y, x] = min(max(hi, lo + 1), ndisp)
+    return lo_map, hi_map

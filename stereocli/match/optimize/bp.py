@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ...registry import param, register
+from ...registry import StageTraits, param, register
 from ..kernels import bp as kb
 from ..kernels.dp import edge_weights, mark_impossible
 from ..state import MatchState
@@ -37,7 +37,8 @@ class BPParams:
     edge_factor: float = param(2.0, "smoothness multiplier between same-surface neighbours (1 = off)", low=1.0, high=100.0)
 
 
-@register("optimizer", "bp", BPParams)
+# Extra volumes: data term, 4 message volumes, beliefs.
+@register("optimizer", "bp", BPParams, traits=StageTraits(volume_copies=6.5))
 def bp(state: MatchState, p: BPParams) -> None:
     """Hierarchical loopy min-sum belief propagation, truncated-linear smoothness (FH 2006).
 
@@ -75,6 +76,3 @@ def bp(state: MatchState, p: BPParams) -> None:
     disp = (np.argmin(belief, axis=2) + state.min_disp).astype(np.float32)
     disp[impossible] = np.inf
     state.disparity = disp
-
-
-bp.volume_copies = 6.5  # data term, 4 message volumes, beliefs

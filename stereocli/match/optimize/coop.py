@@ -17,9 +17,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ...registry import param, register
+from ...registry import StageTraits, param, register
 from ..kernels.coop import box_disparity, inhibit, initial_match_values
-from ..kernels.volume import box_filter_volume
+from ..kernels.aggregation import box_filter_volume
 from ..state import MatchState
 
 
@@ -33,7 +33,8 @@ class CoopParams:
     min_value: float = param(0.0, "declare occluded (+inf) where the largest match value is below this (0 = off)", low=0.0, high=1.0)
 
 
-@register("optimizer", "coop", CoopParams)
+# Extra volumes: L0, L, support (+ float64 temporaries of the box filter).
+@register("optimizer", "coop", CoopParams, traits=StageTraits(volume_copies=4.5))
 def coop(state: MatchState, p: CoopParams) -> None:
     """Cooperative algorithm (Zitnick–Kanade): 3-D local support + inhibition along lines of sight.
 
@@ -58,6 +59,3 @@ def coop(state: MatchState, p: CoopParams) -> None:
     state.cost = np.ascontiguousarray(cost, dtype=np.float32)
     state.cost_max = 1.0
     state.disparity = disp
-
-
-coop.volume_copies = 4.5  # L0, L, support (+ float64 temporaries of the box filter)

@@ -21,9 +21,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from ...errors import ConfigError
-from ...registry import param, register
+from ...registry import StageTraits, param, register
 from ..kernels.dp import edge_weights, warp_to_right
-from ..kernels.volume import wta_left
+from ..kernels.winners import wta_left
 from ..state import MatchState
 
 _RIGHT = np.array([[0, 0, 0], [0, 0, 1], [0, 0, 0]])
@@ -106,7 +106,8 @@ def expansion(data: np.ndarray, labels: np.ndarray, alpha: int, wh: np.ndarray, 
     return np.where(switch, alpha, labels)
 
 
-@register("optimizer", "gc", GCParams)
+# Extra volumes: truncated data term (when data_trunc > 0) + per-expansion graph.
+@register("optimizer", "gc", GCParams, traits=StageTraits(volume_copies=2.0))
 def gc(state: MatchState, p: GCParams) -> None:
     """Graph cuts (α-expansion, Boykov–Veksler–Zabih) with Potts or truncated-linear smoothness.
 
@@ -142,5 +143,3 @@ def gc(state: MatchState, p: GCParams) -> None:
     # No two-view volume: the right view is the z-buffered warp of the labelling, so lr_check
     # removes occluded pixels instead of disagreeing with a raw winner-take-all.
     state.disparity_right = warp_to_right(disp)
-
-gc.volume_copies = 2.0  # truncated data term (when data_trunc > 0) + per-expansion graph

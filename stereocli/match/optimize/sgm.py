@@ -25,15 +25,15 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
-from numba import njit, prange
 
 from ...errors import ConfigError
-from ...registry import param, register
+from ...registry import StageTraits, param, register
 from ..cost import run_cost_stage
 from ..kernels import sgm as ks
 from ..kernels import sgm_window as kw
+from ..kernels.images import half_resolution
 from ..kernels.maps import lr_check
-from ..state import MatchState, WinnerCosts
+from ..state import MatchState, Wants, WinnerCosts
 
 #: Largest value of the aggregated volume (``state.cost_max`` after SGM); sums stay below it.
 S_MAX = 65535
@@ -73,80 +73,6 @@ def quantization(cost_max: float, paths: int, p1: float, p2: float, levels: int)
     return scale, max(cap, 1), int(round(p1 * levels)), int(round(p2 * levels))
 
 
-@njit(cache=True, parallel=True)
-def half_resolution(image: np.ndarray) -> np.ndarray:
-    """2×2 mean of an (H, W) or (H, W, C) float32 image: (ceil(H/2), ceil(W/2)[, C]); an odd
-    last row/column averages what it has. (Compiled rather than cv2.resize: OpenCV's worker
-    threads keep spinning after a call and would slow the numba kernels that follow.)"""
-    h, w = image.shape[0], image.shape[1]
-    h2, w2 = (h + 1) // 2, (w + 1) // 2
-    img = image.reshape(h, w, -1)
-    nc = img.shape[2]
-    out = np.empty((h2, w2, nc), np.float32)
-    for y in prange(h2):
-        y0 = 2 * y
-        y1 = min(2 * y + 1, h - 1)
-        for x in range(w2):
-            x0 = 2 * x
-            x1 = min(2 * x + 1, w - 1)
-            for c in range(nc):
-                out[y, x, c] = np.float32(0.25) * (img[y0, x0, c] + img[y0, x1, c] + img[y1, x0, c] + img[y1, x1, c])
-    return out
-
-
-@njit(cache=True, parallel=True)
-def _square_min_max(coarse: np.ndarray, radius: int):
-    """Min and max of the finite values of ``coarse`` (2-D float32) over the (2r + 1)² square
-    around each pixel (separable: rows, then columns); +inf / −inf where none is finite."""
-    h, w = coarse.shape
-    rmin = np.empty((h, w), np.float32)
-    rmax = np.empty((h, w), np.float32)
-    for y in prange(h):
-        for x in range(w):
-            a = np.float32(np.inf)
-            b = np.float32(-np.inf)
-            for xx in range(max(0, x - radius), min(w, x + radius + 1)):
-                v = coarse[y, xx]
-                if np.isfinite(v):
-                    a = min(a, v)
-                    b = max(b, v)
-            rmin[y, x] = a
-            rmax[y, x] = b
-    lo = np.empty((h, w), np.float32)
-    hi = np.empty((h, w), np.float32)
-    for y in prange(h):
-        lo[y] = rmin[max(0, y - radius)]
-        hi[y] = rmax[max(0, y - radius)]
-        for yy in range(max(0, y - radius) + 1, min(h, y + radius + 1)):
-            for x in range(w):
-                lo[y, x] = min(lo[y, x], rmin[yy, x])
-                hi[y, x] = max(hi[y, x], rmax[yy, x])
-    return lo, hi
-
-
-@njit(cache=True, parallel=True)
-def _upsample_windows(nmin, nmax, h: int, w: int, min_disp: int, ndisp: int, margin: int):
-    """(H, W) int32 ``lo``/``hi`` volume indices from the coarse range [nmin, nmax] of each
-    pixel's coarse parent (y // 2, x // 2): doubled, ± ``margin``; the full range where the
-    range is empty. Clipped to [0, D) and never empty."""
-    lo_map = np.empty((h, w), np.int32)
-    hi_map = np.empty((h, w), np.int32)
-    for y in prange(h):
-        for x in range(w):
-            a = nmin[y // 2, x // 2]
-            b = nmax[y // 2, x // 2]
-            if b >= a:
-                lo = int(2 * a) - margin - min_disp
-                hi = int(2 * b) + margin + 1 - min_disp
-            else:
-                lo = 0
-                hi = ndisp
-            lo = min(max(lo, 0), ndisp - 1)
-            lo_map[y, x] = lo
-            hi_map[y, x] = min(max(hi, lo + 1), ndisp)
-    return lo_map, hi_map
-
-
 #: The coarse level searches a range of a multiple of this many hypotheses (extended beyond
 #: the far end). The full-range kernel's vector loops then run whole: an odd tail runs scalar
 #: (at D/2 = 31, Shelves' coarse level, the tail of 15 took as long as the 16 vector lanes).
@@ -155,10 +81,11 @@ def _upsample_windows(nmin, nmax, h: int, w: int, min_disp: int, ndisp: int, mar
 COARSE_RANGE_STEP = 8
 
 
-def coarse_disparity(state: MatchState, p: SGMParams) -> np.ndarray:
+def coarse_disparity(state: MatchState, p: SGMParams, cost) -> np.ndarray:
     """Left disparities of the pair at half resolution (full range, rounded up to
     ``COARSE_RANGE_STEP`` hypotheses; same cost and SGM), LR checked (±1 coarse px);
-    (ceil(H/2), ceil(W/2)) float32 in coarse px, +inf where rejected."""
+    (ceil(H/2), ceil(W/2)) float32 in coarse px, +inf where rejected. ``cost`` is the configured
+    cost StageCall, run on the half-resolution images."""
 
     def half(img: np.ndarray) -> np.ndarray:
         out = half_resolution(np.ascontiguousarray(img, dtype=np.float32))
@@ -171,13 +98,11 @@ def coarse_disparity(state: MatchState, p: SGMParams) -> np.ndarray:
     hi_d = int(np.ceil((state.min_disp + state.ndisp - 1) / 2))
     hi_d = lo_d + -(-(hi_d - lo_d + 1) // COARSE_RANGE_STEP) * COARSE_RANGE_STEP - 1
     sub = MatchState(half(state.left), half(state.right), lo_d, hi_d - lo_d + 1, half_mask(state.left_valid),
-                     half_mask(state.right_valid), want_right=True, integer_cost_ok=state.integer_cost_ok,
-                     threads=state.threads)
+                     half_mask(state.right_valid), threads=state.threads,
+                     wants=Wants(right=True, integer_cost=state.wants.integer_cost, volume=False))
     # run_sgm computes this level's costs itself (windowed if it searches coarse to fine again,
     # else the full range) and only its winners are read here.
-    sub.cost_call = state.cost_call
-    sub.volume_needed = False
-    run_sgm(sub, replace(p, paths=p.coarse_paths or p.paths, coarse_levels=p.coarse_levels - 1),
+    run_sgm(sub, replace(p, paths=p.coarse_paths or p.paths, coarse_levels=p.coarse_levels - 1), cost,
             coarse=p.coarse_levels > 1)
     return lr_check(sub.disparity, sub.disparity_right, 1.0)
 
@@ -188,8 +113,8 @@ def search_windows(coarse: np.ndarray, shape: tuple[int, int], min_disp: int, nd
     disparities: the range of the valid coarse disparities within ``radius`` coarse pixels,
     doubled, plus ``margin`` px each side; the full range where none is valid."""
     h, w = shape
-    nmin, nmax = _square_min_max(np.ascontiguousarray(coarse, dtype=np.float32), int(radius))
-    lo, hi = _upsample_windows(nmin, nmax, h, w, int(min_disp), int(ndisp), int(margin))
+    nmin, nmax = kw.square_min_max(np.ascontiguousarray(coarse, dtype=np.float32), int(radius))
+    lo, hi = kw.upsample_windows(nmin, nmax, h, w, int(min_disp), int(ndisp), int(margin))
     if max_window > 0:
         wide = hi - lo > max_window
         own = np.repeat(np.repeat(coarse, 2, 0), 2, 1)[:h, :w]
@@ -228,37 +153,37 @@ def _quantized(state: MatchState, p: SGMParams) -> tuple[np.ndarray, int, float,
     return cq, mul, scale, p1, p2
 
 
-def _run_windowed(state: MatchState, p: SGMParams) -> None:
+def _run_windowed(state: MatchState, p: SGMParams, cost) -> None:
     """Coarse-to-fine SGM: windows from the half-resolution disparities, costs on the windows
     only (the cost stage's ``windowed`` kernel, else its dense volume gathered), windowed
     SGM. Leaves ``winner`` (or, if a later stage needs it, the dense sums in ``cost``)."""
-    coarse = coarse_disparity(state, p)
+    coarse = coarse_disparity(state, p, cost)
     lo, hi = search_windows(coarse, state.shape, state.min_disp, state.ndisp, p.margin, p.radius, p.max_window)
     runs = kw.window_runs(lo, hi, state.ndisp, p.align)
-    call = state.cost_call
-    windowed = getattr(call.stage.func, "windowed", None)
+    windowed = cost.stage.traits.windowed
     exact = None
     if windowed is not None and state.cost is None:
-        costs, state.cost_max = windowed(state, call.params, runs)
+        costs, state.cost_max = windowed(state, cost.params, runs)
         exact = _integer_costs(state.cost_max, costs.dtype, p)
     if exact is not None:
         mul, scale, p1, p2 = exact
     else:
         if state.cost is None:  # the pipeline left the cost to this stage
-            run_cost_stage(state, call)
+            run_cost_stage(state, cost)
         cq, mul, scale, p1, p2 = _quantized(state, p)
         costs = kw.gather_runs(cq, runs[2], runs[3], runs[4], runs[5])
         del cq
     guide = np.ascontiguousarray(state.gray("left"), dtype=np.float32)
     run = kw.sgm_window(costs, runs, state.ndisp, guide, p.paths, p1, p2, float(p.p2_gamma), state.min_disp,
-                        state.want_right, state.want_second, cost_mul=mul, want_right_costs=state.want_right_costs)
+                        state.wants.right, state.wants.second_best, cost_mul=mul,
+                        want_right_costs=state.wants.right_costs)
     del costs
     state.extras["sgm_scale"] = scale
     state.cost_max = float(S_MAX)
     state.disparity = run["disparity"]
-    if state.want_right:
+    if state.wants.right:
         state.disparity_right = run["disparity_right"]
-    if state.volume_needed:
+    if state.wants.volume:
         state.cost = kw.expand_sums(run["total"], runs[4], runs[2], lo, hi, state.ndisp)
     else:
         state.winner = WinnerCosts(run["disparity"].copy(), run["costs"], run["costs_right"],
@@ -266,22 +191,23 @@ def _run_windowed(state: MatchState, p: SGMParams) -> None:
                                    run["second"])
 
 
-def run_sgm(state: MatchState, p: SGMParams, coarse: bool | None = None) -> None:
+def run_sgm(state: MatchState, p: SGMParams, cost=None, coarse: bool | None = None) -> None:
     """Run SGM on ``state.cost``; sets ``disparity`` and replaces ``cost`` by the uint16 sums
-    (coarse-to-fine: see :func:`_run_windowed`)."""
+    (coarse-to-fine: see :func:`_run_windowed`). ``cost``: the configured cost StageCall, which
+    the coarse-to-fine search runs itself (without it, only ``state.cost`` is used)."""
     h, w = state.shape
-    if ((p.coarse if coarse is None else coarse) and state.cost_call is not None
+    if ((p.coarse if coarse is None else coarse) and cost is not None
             and state.ndisp > max(4, p.coarse_min_ndisp) and h * w * state.ndisp > p.coarse_min_volume * 1e6):
-        _run_windowed(state, p)
+        _run_windowed(state, p, cost)
         return
-    if state.cost is None and state.cost_call is not None:  # left to this stage (runs_cost, coarse level)
-        run_cost_stage(state, state.cost_call)
+    if state.cost is None and cost is not None:  # left to this stage (runs_cost, coarse level)
+        run_cost_stage(state, cost)
     if state.cost is None:
         raise ConfigError("optimizer.sgm: no cost volume (the cost stage did not run)")
     cq, mul, scale, p1, p2 = _quantized(state, p)
     guide = np.ascontiguousarray(state.gray("left"), dtype=np.float32)
     acc, state.disparity, right = ks.sgm_aggregate(cq, guide, p.paths, p1, p2, float(p.p2_gamma),
-                                                   state.min_disp, state.want_right, cost_mul=mul)
+                                                   state.min_disp, state.wants.right, cost_mul=mul)
     if right is not None:
         state.disparity_right = right
     del cq
@@ -290,8 +216,25 @@ def run_sgm(state: MatchState, p: SGMParams, coarse: bool | None = None) -> None
     state.extras["sgm_scale"] = scale
 
 
-@register("optimizer", "sgm", SGMParams)
-def sgm(state: MatchState, p: SGMParams) -> None:
+def _buffer_bytes(p: SGMParams, width: int, ndisp: int) -> float:
+    """Path-cost row buffers of each row stripe: 3 rows × directions × (D + 2) int16 (plus
+    their minima and penalties) and a scratch row of W·D uint16 sums for the warm-up rows."""
+    nk = len(ks.DOWN_DIRECTIONS[p.paths])
+    return ks.STRIPES * (3 * width * nk * (ndisp + 2) * 2 + 4 * width * nk * 3 + width * ndisp * 2)
+
+
+def _searches_coarse_to_fine(p: SGMParams) -> bool:
+    """when coarse: true (it runs the cost stage at half resolution, then on its windows)"""
+    return p.coarse
+
+
+# Memory: the uint8 copy beside the float input (0.25 volumes; afterwards uint8 + 2 × uint16
+# = 1.25 in total, the same peak; levels > 255 use a uint16 copy: 0.5). Integer costs
+# (census) are used as they are: no float volume, no quantised copy, only the uint16 sums.
+@register("optimizer", "sgm", SGMParams,
+          traits=StageTraits(volume_copies=0.25, accepts_integer_cost=True, integer_volume_copies=0.5,
+                             buffer_bytes=_buffer_bytes, runs_cost=_searches_coarse_to_fine))
+def sgm(state: MatchState, p: SGMParams, cost=None) -> None:
     """Semi-global matching: sum of 1-D smoothness-constrained path costs (Hirschmüller 2008).
 
     P1 penalises 1-px disparity steps (slanted surfaces), P2 larger jumps (discontinuities);
@@ -303,26 +246,4 @@ def sgm(state: MatchState, p: SGMParams) -> None:
     pixel's hypotheses to the range of its coarse neighbourhood (± ``margin``), which is
     faster and, on MiddEval3, as accurate (see the module docstring).
     """
-    run_sgm(state, p)
-
-
-# Peak extra (H, W, D) float32-equivalents held by the stage beside its input: the uint8 copy
-# while the float input is alive (0.25); afterwards uint8 + 2 × uint16 = 1.25 in total, the
-# same peak. (levels > 255 use a uint16 copy: 0.5.)
-sgm.volume_copies = 0.25
-# Integer costs (census) are used as they are: no float volume, no quantised copy; only the
-# uint16 sums beside them.
-sgm.accepts_integer_cost = True
-sgm.integer_volume_copies = 0.5
-
-
-def _buffer_bytes(p: SGMParams, width: int, ndisp: int) -> float:
-    """Path-cost row buffers of each row stripe: 3 rows × directions × (D + 2) int16 (plus
-    their minima and penalties) and a scratch row of W·D uint16 sums for the warm-up rows."""
-    nk = len(ks.DOWN_DIRECTIONS[p.paths])
-    return ks.STRIPES * (3 * width * nk * (ndisp + 2) * 2 + 4 * width * nk * 3 + width * ndisp * 2)
-
-
-sgm.buffer_bytes = _buffer_bytes
-# Coarse-to-fine runs the cost stage itself (at half resolution, then on the windows only).
-sgm.runs_cost = lambda p: p.coarse
+    run_sgm(state, p, cost)

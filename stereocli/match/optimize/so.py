@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ...registry import param, register
+from ...registry import StageTraits, param, register
 from ..kernels.dp import edge_weights, mark_impossible, scanline_optimize
 from ..state import MatchState
 
@@ -28,7 +28,8 @@ class SOParams:
     edge_factor: float = param(2.0, "smoothness multiplier between same-surface neighbours (1 = off)", low=1.0, high=100.0)
 
 
-@register("optimizer", "so", SOParams)
+# Extra volumes: min-marginals + per-row buffers.
+@register("optimizer", "so", SOParams, traits=StageTraits(volume_copies=2.2))
 def so(state: MatchState, p: SOParams) -> None:
     """Scanline optimisation: exact minimum of data + 1-D truncated-linear smoothness per row.
 
@@ -52,6 +53,3 @@ def so(state: MatchState, p: SOParams) -> None:
 def _all_impossible(state: MatchState) -> np.ndarray:
     """(H, W) bool: pixels where every hypothesis holds cost_max (nothing to match)."""
     return np.all(state.cost >= np.float32(state.cost_max), axis=2)
-
-
-so.volume_copies = 2.2  # min-marginals + per-row buffers

@@ -10,13 +10,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from ...registry import register
+from ...registry import StageTraits, register
 from ..kernels.fused_sad import subpixel_winner
-from ..kernels.volume import wta_left
+from ..kernels.winners import wta_left
 from ..state import MatchState, WinnerCosts
 
 
-@register("optimizer", "wta")
+@register("optimizer", "wta", traits=StageTraits(winner_take_all=True))
 def wta(state: MatchState, params) -> None:
     """Lowest cost per pixel (no smoothness term); ties go to the smaller disparity."""
     state.disparity, _ = wta_left(state.cost, state.min_disp, state.cost_max)
@@ -36,7 +36,7 @@ def check_winner_coverage(missing: int, stage: str) -> None:
 def subpixel_on_winner(winner: WinnerCosts, disparity: np.ndarray, min_disp: int, ndisp: int,
                        equiangular: bool, stage: str = "subpixel", right: bool = False) -> np.ndarray:
     """Sub-pixel refinement of the WTA disparities from ``winner`` (same result as
-    :func:`~stereocli.match.kernels.volume.subpixel_left` on the volume; ``right``: the
+    :func:`~stereocli.match.kernels.winners.subpixel_left` on the volume; ``right``: the
     right-view map from ``winner.costs_right``)."""
     if right:
         refined, missing = subpixel_winner(winner.disparity_right, winner.costs_right, disparity, min_disp, ndisp,

@@ -1,4 +1,4 @@
-"""Rectification as batch work: plan items, and the item function workers run.
+"""``stereocli rectify`` as batch work: pairs -> work items, and the item function workers run.
 
 Per pair, ``OUTDIR/<name>/`` receives ``im0.png``/``im1.png`` (rectified left/right, input
 dtype and channels kept), ``valid0.png``/``valid1.png`` (255 = pixel sampled from inside the
@@ -9,42 +9,19 @@ baseline in mm when the unit is known, width/height, ndisp estimate) and optiona
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
-from ..batch import WorkItem
 from ..errors import DataError
 from ..io.pairs import StereoInput
+from .items import WorkItem
 
 _MAPS_CACHE: dict = {}
-
-
-def find_pairs(inputs: list[str] | tuple[str, ...]) -> tuple[list[StereoInput], list[str]]:
-    """Like :func:`stereocli.io.pairs.discover_pairs`, plus single folders of ``left*``/``right*`` photos."""
-    from ..calib.inputs import _images, _side_key, find_calibration_pairs
-    from ..io.pairs import discover_pairs, scene_pair
-
-    pairs: list[StereoInput] = []
-    problems: list[str] = []
-    rest = []
-    for raw in inputs:
-        p = Path(raw)
-        if p.is_dir() and not scene_pair(p) and not (p / "left").is_dir() and _images(p) \
-                and all(_side_key(f.stem)[0] for f in _images(p)):
-            for name, left, right in find_calibration_pairs(p):
-                pairs.append(StereoInput(name=name, left=left, right=right))
-        else:
-            rest.append(raw)
-    if rest:
-        found, bad = discover_pairs(rest)
-        pairs += found
-        problems += bad
-    return pairs, problems
 
 
 def plan_items(pairs: list[StereoInput], outdir: str | Path, *, calib_path: str, alpha: float = 0.0,
                size: tuple[int, int] | None = None, interpolation: str = "linear", check: bool = False,
                ndisp: int | None = None, min_depth: float | None = None) -> list[WorkItem]:
+    """One :class:`WorkItem` per pair; ``size`` is the rectified (width, height)."""
     items = []
     for pair in pairs:
         out = Path(outdir) / pair.name
@@ -60,7 +37,7 @@ def plan_items(pairs: list[StereoInput], outdir: str | Path, *, calib_path: str,
 
 def _maps_for(calib_path: str, alpha: float, size):
     from ..io.calib import load_calibration
-    from .maps import build_maps
+    from ..rectify.maps import build_maps
 
     p = Path(calib_path)
     key = (str(p.resolve()), p.stat().st_mtime_ns, alpha, tuple(size) if size else None)
@@ -73,12 +50,10 @@ def _maps_for(calib_path: str, alpha: float, size):
 
 def rectify_item(item: WorkItem) -> dict:
     """Rectify one pair (see the module docstring for outputs); returns run-record details."""
-    from dataclasses import replace
-
     from ..io.calib import to_middlebury
     from ..io.images import read_image, write_image
     from ..io.middlebury import write_calib_txt
-    from .maps import check_image, estimate_ndisp, rectify_images
+    from ..rectify.maps import check_image, estimate_ndisp, rectified_calibration, rectify_images
 
     opts = item.options
     calib, maps = _maps_for(item.inputs["calibration"], opts["alpha"], opts["size"])
@@ -92,8 +67,7 @@ def rectify_item(item: WorkItem) -> dict:
     r0, r1 = rectify_images(left, right, maps, interpolation=opts["interpolation"])
     rect = maps.rect
     ndisp = opts["ndisp"] or estimate_ndisp(rect, min_depth=opts["min_depth"] or calib.extra.get("board_depth_min"))
-    rectified = replace(calib, R1=rect.R1, R2=rect.R2, P1=rect.P1, P2=rect.P2, Q=rect.Q, rectified_size=rect.size)
-    mb = to_middlebury(rectified, ndisp=ndisp)
+    mb = to_middlebury(rectified_calibration(calib, rect=rect), ndisp=ndisp)
     out = item.outputs
     write_image(out["im0"], r0)
     write_image(out["im1"], r1)
@@ -106,8 +80,3 @@ def rectify_item(item: WorkItem) -> dict:
             "ndisp": ndisp, "roi_left": list(rect.roi1), "roi_right": list(rect.roi2),
             "valid_fraction_left": float((maps.valid1 > 0).mean()),
             "valid_fraction_right": float((maps.valid2 > 0).mean())}
-
-
-def dry_run_plan(items: list[WorkItem]) -> str:
-    return json.dumps([{"name": i.name, "inputs": i.inputs, "outputs": i.outputs, "options": i.options}
-                       for i in items], indent=2)

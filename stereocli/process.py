@@ -1,5 +1,8 @@
-"""Keep freed large buffers in the process (glibc ``mallopt``), so matching does not pay for
-fresh pages on every pair.
+"""Process-wide settings, applied by the entry points (the command line, benchmarks), never by
+importing the library.
+
+:func:`keep_freed_memory` keeps freed large buffers in the process (glibc ``mallopt``), so
+matching does not pay for fresh pages on every pair.
 
 Each pair allocates and frees tens of MiB (cost volumes, path sums, maps). glibc serves blocks
 above ``M_MMAP_THRESHOLD`` (128 KiB, rising to at most 32 MiB) with fresh ``mmap`` pages and
@@ -9,8 +12,8 @@ SGBM (which keeps its buffers inside the matcher object between calls). Raising 
 thresholds keeps the blocks on the heap for reuse. The price is that RSS stays near the peak
 between pairs instead of dropping.
 
-Applied once when the matching pipeline is imported; set ``STEREOCLI_KEEP_FREED_MEMORY=0`` to
-leave the allocator alone. A no-op where the C library has no ``mallopt`` (non-glibc).
+Applied once by ``stereocli`` at start-up; set ``STEREOCLI_KEEP_FREED_MEMORY=0`` to leave the
+allocator alone. A no-op where the C library has no ``mallopt`` (non-glibc).
 """
 
 from __future__ import annotations

@@ -1,19 +1,16 @@
-"""Compiled kernels over (H, W, D) cost volumes: selection, sub-pixel, box aggregation.
+"""Compiled kernels that pick winners on (H, W, D) cost volumes: WTA (left and right view) and
+sub-pixel fits around the winners.
 
-Every kernel here has a small pure-numpy reference in ``tests/test_kernels.py``.
 Cost volume layout: ``cost[y, x, k]`` is the cost of left pixel (x, y) against right pixel
 (x - (min_disp + k), y); lower is better; float32 or uint16 (SGM sums), C-contiguous.
 """
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 from numba import njit, prange
 
 INF = np.float32(np.inf)
-#: Most channels the OpenCV Python binding converts for its filters (a volume is fed as H×W×D).
-CV_MAX_CHANNELS = 128
 
 
 @njit(cache=True, parallel=True)
@@ -133,26 +130,4 @@ def subpixel_right(cost: np.ndarray, disp_right: np.ndarray, min_disp: int, equi
                 continue
             off = _subpixel_offset(cost[y, x0, k - 1], cost[y, x0 + 1, k], cost[y, x2, k + 1], equiangular)
             out[y, xr] = np.float32(d + off)
-    return out
-
-
-def box_filter_volume(cost: np.ndarray, radius_y: int, radius_x: int) -> np.ndarray:
-    """Mean of each cost slice over a (2·radius_y+1) × (2·radius_x+1) window, O(1) per pixel.
-
-    Windows are clipped at the image border (the mean is over the pixels inside). OpenCV's
-    running-sum box filter treats the D slices as channels (at most 128 per call), summing
-    in double precision, then each window sum is divided by its pixel count.
-    """
-    cost = np.ascontiguousarray(cost, dtype=np.float32)
-    h, w, nd = cost.shape
-    ksize = (2 * radius_x + 1, 2 * radius_y + 1)
-    count = cv2.boxFilter(np.ones((h, w), np.float32), -1, ksize, normalize=False,
-                          borderType=cv2.BORDER_CONSTANT)
-    inv = (1.0 / count).astype(np.float32)[..., None]
-    out = np.empty_like(cost)
-    for k0 in range(0, nd, CV_MAX_CHANNELS):
-        k1 = min(nd, k0 + CV_MAX_CHANNELS)
-        chunk = cost if (k0 == 0 and k1 == nd) else np.ascontiguousarray(cost[:, :, k0:k1])
-        total = cv2.boxFilter(chunk, -1, ksize, normalize=False, borderType=cv2.BORDER_CONSTANT)
-        np.multiply(total.reshape(h, w, k1 - k0), inv, out=out[:, :, k0:k1])
     return out

@@ -1,19 +1,19 @@
-"""The Dask distributed executor: batches of work items on a cluster, and tasks inside a task.
+"""The Dask executor: batches of work items on a cluster, and tasks inside a task.
 
 ``--scheduler tcp://host:port`` connects to a running Dask scheduler (the workers must be able
 to import ``stereocli`` and read/write the same paths: inputs and the output folder are
 shared); ``--scheduler local`` starts a :class:`distributed.LocalCluster` of worker processes on
 this machine (for testing, or for one machine without a process pool).
 
-Semantics are those of :func:`stereocli.batch.run_batch` for every executor: only paths travel
-(a :class:`~stereocli.batch.WorkItem`, never arrays), item functions write their outputs
-atomically into the shared output folder, each item's result is recorded once, in input
-order. Two kinds of retry:
+Semantics are those of :func:`stereocli.jobs.executors.run_batch` for every executor: only
+paths travel (a :class:`~stereocli.jobs.items.WorkItem`, never arrays), item functions write
+their outputs atomically into the shared output folder, each item's result is recorded once,
+in input order. Two kinds of retry:
 
 * a worker that dies mid-item (killed, out of memory) takes its task with it; the scheduler
   re-runs the task on another worker (Dask's own rescheduling, up to
-  ``distributed.scheduler.allowed-failures`` deaths) and the item function removes the dead
-  attempt's temporary files before writing (:func:`stereocli.match.run.match_item`);
+  ``distributed.scheduler.allowed-failures`` deaths) and the runner removes the dead attempt's
+  temporary files before writing (:func:`stereocli.jobs.items.run_one`);
 * an item that *fails* (the item function raised, or the scheduler gave up on it) is submitted
   again, up to ``retries`` more times.
 
@@ -30,7 +30,8 @@ import os
 import re
 from typing import Any, Callable, Iterator, Sequence
 
-from .errors import ConfigError
+from ..errors import ConfigError
+from .items import ItemResult, WorkItem, prepare_worker, run_one
 
 INSTALL_HINT = 'pip install "stereocli[dask]"'
 WORKER_WAIT_SECONDS = 60  # a remote scheduler with no workers would otherwise wait forever
@@ -103,11 +104,10 @@ def connect(scheduler: str, jobs: int | None = None) -> Iterator[Any]:
             cluster.close()
 
 
-def _run_on_worker(item_fn: Callable, item, verbose_errors: bool):
+def _run_on_worker(item_fn: Callable, item: WorkItem, verbose_errors: bool) -> ItemResult:
     """Task body: run one item with the batch's error handling; note which worker ran it."""
-    from .batch import _run_one
-
-    result = _run_one(item_fn, item, verbose_errors)
+    prepare_worker()
+    result = run_one(item_fn, item, verbose_errors)
     try:
         from distributed import get_worker
 
@@ -117,16 +117,14 @@ def _run_on_worker(item_fn: Callable, item, verbose_errors: bool):
     return result
 
 
-def run_dask(items: Sequence, item_fn: Callable, verbose_errors: bool, bar, scheduler: str | None,
-             retries: int, jobs: int | None = None) -> list:
+def run_dask(items: Sequence[WorkItem], item_fn: Callable, verbose_errors: bool, bar, scheduler: str | None,
+             retries: int, jobs: int | None = None) -> list[ItemResult]:
     """Run ``item_fn`` over ``items`` on a Dask cluster; per-item results in input order.
 
     Failed items are resubmitted up to ``retries`` times (``attempts`` counts submissions; a
     task re-run by the scheduler after its worker died is one attempt). ``bar`` advances once
     per item, when its final result is known.
     """
-    from .batch import ItemResult
-
     distributed = require_distributed()
     items = list(items)
     results: list[ItemResult | None] = [None] * len(items)
@@ -148,8 +146,8 @@ def run_dask(items: Sequence, item_fn: Callable, verbose_errors: bool, bar, sche
             try:
                 res = future.result()
             except (Exception, asyncio.CancelledError) as exc:  # noqa: BLE001 - lost task fails its item only
-                res = ItemResult(items[k].name, "failed", message=f"{items[k].name}: lost on the cluster "
-                                 f"({type(exc).__name__}: {exc})", inputs=items[k].inputs, outputs=items[k].outputs)
+                lost = f"{items[k].name}: lost on the cluster ({type(exc).__name__}: {exc})"
+                res = ItemResult.failure(items[k], lost)
             future.release()
             res.attempts = attempts[k]
             if res.status == "failed" and attempts[k] <= retries:

@@ -1,4 +1,5 @@
-"""Compiled kernels for the local matching costs (pixel-wise and window-based).
+"""Compiled kernels for the matching costs other than census: pixel-wise (AD, SD, BT, gradient),
+window-based (SAD, NCC, rank, ordinal, AD-census), mutual information, and the right-border mask.
 
 Cost volume layout (the stage contract): ``cost[y, x, k]`` compares left (x, y) with right
 (x - (min_disp + k), y); float32, C-contiguous, lower is better; entries whose right pixel lies
@@ -16,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from .cost import _popcount64
+from .census import _popcount64
 
 #: pixel-wise cost modes of :func:`window_cost_volume` / :func:`pixel_cost_volume`
 MODE_AD = 0  # mean over channels of |L - R|
@@ -442,4 +443,59 @@ def ordinal_volume(order_l: np.ndarray, rank_r: np.ndarray, min_disp: int, ndisp
                     if di > dm:
                         dm = di
                 out[y, x, k] = np.float32(dm * norm)
+    return out
+
+
+@njit(cache=True, parallel=True)
+def absdiff_volume(left: np.ndarray, right: np.ndarray, min_disp: int, ndisp: int,
+                   cost_max: float, truncate: float) -> np.ndarray:
+    """Mean absolute difference over channels, truncated at ``truncate``.
+
+    ``left``/``right`` are (H, W, C) float32 (C = 1 for grey).
+    """
+    h, w, nc = left.shape
+    out = np.empty((h, w, ndisp), np.float32)
+    inv = 1.0 / nc
+    for y in prange(h):
+        for x in range(w):
+            for k in range(ndisp):
+                xr = x - (min_disp + k)
+                if xr < 0 or xr >= w:
+                    out[y, x, k] = cost_max
+                    continue
+                s = 0.0
+                for c in range(nc):
+                    s += abs(left[y, x, c] - right[y, xr, c])
+                s *= inv
+                out[y, x, k] = np.float32(min(s, truncate))
+    return out
+
+
+@njit(cache=True, parallel=True)
+def mask_invalid_right(cost: np.ndarray, right_valid: np.ndarray, min_disp: int, cost_max: float) -> None:
+    """Set ``cost_max`` wherever the right pixel is outside the right valid mask (in place)."""
+    h, w, nd = cost.shape
+    for y in prange(h):
+        for x in range(w):
+            for k in range(nd):
+                xr = x - (min_disp + k)
+                if 0 <= xr < w and not right_valid[y, xr]:
+                    cost[y, x, k] = cost_max
+
+
+@njit(cache=True, parallel=True)
+def mi_volume(left_bins, right_bins, table, min_disp: int, ndisp: int, cost_max: float) -> np.ndarray:
+    """``cost[y, x, k] = table[left_bins[y, x], right_bins[y, x − (min_disp + k)]]``, ``cost_max``
+    where the right pixel is outside the image. Returns (H, W, D) float32."""
+    h, w = left_bins.shape
+    out = np.empty((h, w, ndisp), np.float32)
+    for y in prange(h):
+        for x in range(w):
+            row = table[left_bins[y, x]]
+            for k in range(ndisp):
+                xr = x - (min_disp + k)
+                if xr < 0 or xr >= w:
+                    out[y, x, k] = cost_max
+                else:
+                    out[y, x, k] = row[right_bins[y, xr]]
     return out

@@ -1,4 +1,5 @@
-"""Matching as batch work: plan items from inputs, and the item function workers run.
+"""``stereocli match`` as batch work: pairs -> work items, the item function workers run, and
+one pair's row strips spread over Dask workers (``--split-strips``).
 
 Outputs per pair, in ``OUTDIR/<name>/``:
 
@@ -9,6 +10,13 @@ Outputs per pair, in ``OUTDIR/<name>/``:
 * ``conf0.pfm`` — confidence in [0, 1] (``confidence``); ``disp1.pfm`` — right view (``right``);
 * ``time.txt`` — matching seconds (Middlebury convention);
 * ``params.json`` — effective config, versions, disparity range, timings per stage.
+
+With ``split_strips`` the item task runs :func:`~stereocli.match.pipeline.prepare` and
+:func:`~stereocli.match.pipeline.finish` itself and sends each strip's volume stages
+(:func:`~stereocli.match.pipeline.run_strip`, a pure function of the cropped strip state and
+the config) to the cluster as a sub-task (:func:`strip_task`). Strips are stitched in plan
+order, so the result is bit-identical to matching in one process with the same config,
+whichever workers ran the strips.
 """
 
 from __future__ import annotations
@@ -16,14 +24,18 @@ from __future__ import annotations
 import json
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ..batch import WorkItem
 from ..errors import ConfigError, DataError
 from ..io.atomic import write_text
 from ..io.pairs import StereoInput
+from .items import WorkItem, prepare_worker
+
+if TYPE_CHECKING:
+    from ..match.pipeline import PreparedPair, StripMap, StripResult
+    from ..match.state import MatchState
 
 _CONFIG_CACHE: dict[str, Any] = {}
 
@@ -62,9 +74,14 @@ def plan_items(
     confidence: bool = False,
     right: bool = False,
     keep_invalid: bool = False,
+    split_strips: bool = False,
     record_info: dict | None = None,
 ) -> list[WorkItem]:
-    """One :class:`WorkItem` per pair with its inputs, outputs and options."""
+    """One :class:`WorkItem` per pair with its inputs, outputs and options.
+
+    ``config`` is the effective config as a plain dict; ``split_strips`` spreads each pair's
+    strips over the Dask cluster its task runs on (a pair with one strip runs whole).
+    """
     outdir = Path(outdir)
     items = []
     for pair in pairs:
@@ -89,13 +106,15 @@ def plan_items(
         options = {"config": config, "min_disp": lo, "ndisp": nd, "png16_scale": png16_scale,
                    "keep_invalid": keep_invalid, "vmin": info.get("vmin"), "vmax": info.get("vmax"),
                    "record": record_info or {}}
+        if split_strips:
+            options["split_strips"] = True
         items.append(WorkItem(pair.name, inputs, outputs, options))
     return items
 
 
 def _config(config: dict):
     # Workers validate the config once per process, not once per item.
-    from ..config import validate
+    from ..match.config import validate
 
     key = json.dumps(config, sort_keys=True)
     if key not in _CONFIG_CACHE:
@@ -113,7 +132,7 @@ def _load_mask(path: str | None) -> np.ndarray | None:
 
 
 def _remove_stale_temporaries(folder: Path) -> None:
-    # A killed earlier run may have left temporary files (never under the final names).
+    # The pair's folder is its own: any temporary in it is a dead attempt's (never a final name).
     if folder.is_dir():
         for tmp in folder.glob(".*.tmp*"):
             tmp.unlink(missing_ok=True)
@@ -123,7 +142,7 @@ def match_item(item: WorkItem) -> dict:
     """Match one pair and write its outputs atomically; returns details for the run record."""
     from ..io.images import read_image, write_disparity, write_image
     from ..io.pfm import write_pfm
-    from .pipeline import match_pair
+    from ..match.pipeline import match_pair
 
     opts = item.options
     config = _config(opts["config"])
@@ -143,11 +162,7 @@ def match_item(item: WorkItem) -> dict:
     right_valid = _load_mask(item.inputs.get("right_valid"))
     load_seconds = time.perf_counter() - t_load
 
-    strip_map = None
-    if opts.get("split_strips"):
-        from .split import cluster_strip_map
-
-        strip_map = cluster_strip_map(opts["config"])
+    strip_map = cluster_strip_map(opts["config"]) if opts.get("split_strips") else None
     t0 = time.perf_counter()
     result = match_pair(left, right, config, min_disp=opts["min_disp"], ndisp=opts["ndisp"],
                         left_valid=left_valid, right_valid=right_valid,
@@ -189,3 +204,32 @@ def match_item(item: WorkItem) -> dict:
     # time.txt last: its presence marks a complete result for resumption tools.
     write_text(out["time"], f"{seconds:.6f}\n")
     return details
+
+
+def cluster_strip_map(config_dict: dict) -> StripMap:
+    """A ``strip_map`` for :func:`~stereocli.match.pipeline.match_pair` that spreads strips over
+    the cluster the calling task runs on (in-process when there is one strip or no cluster).
+
+    ``config_dict`` is the effective config as a plain dict: workers validate it once per process.
+    """
+
+    def strip_map(prepared: PreparedPair, config) -> list[StripResult]:
+        from ..match.pipeline import run_strips, strip_input
+        from .dask import in_worker, worker_map
+
+        if len(prepared.strips) < 2 or not in_worker():
+            return run_strips(prepared, config)
+        # Cropped strip states (image rows only, no volumes) are scattered to the cluster.
+        args = [(strip_input(prepared, y0, y1), config_dict, y0, y1, prepared.keep_invalid)
+                for y0, y1 in prepared.strips]
+        return worker_map(strip_task, args)
+
+    return strip_map
+
+
+def strip_task(sub: MatchState, config_dict: dict, y0: int, y1: int, keep_invalid: bool) -> StripResult:
+    """Sub-task body: the volume stages of one strip, on whichever worker runs it."""
+    from ..match.pipeline import run_strip
+
+    prepare_worker()
+    return run_strip(sub, _config(config_dict), y0, y1, keep_invalid=keep_invalid)

@@ -1,4 +1,4 @@
-"""Compiled kernels that build (H, W, D) float32 cost volumes.
+"""Census transform and Hamming-distance cost volumes (full range and on a windowed SGM's runs).
 
 Layout: ``cost[y, x, k]`` compares left (x, y) with right (x - (min_disp + k), y); entries whose
 right pixel is outside the image get ``cost_max``.
@@ -46,17 +46,6 @@ def _census_rows(image: np.ndarray, half_h: int, half_w: int) -> np.ndarray:
                 bit += 1
         for x in range(w):
             out[y, x] = (np.uint64(high[x]) << np.uint64(32)) | np.uint64(low[x])
-    return out
-
-
-@njit(cache=True, parallel=True)
-def luma(img: np.ndarray) -> np.ndarray:
-    """(H, W, 3) float32 RGB -> (H, W) float32 luma 0.299 R + 0.587 G + 0.114 B."""
-    h, w = img.shape[0], img.shape[1]
-    out = np.empty((h, w), np.float32)
-    for y in prange(h):
-        for x in range(w):
-            out[y, x] = np.float32(0.299 * img[y, x, 0] + 0.587 * img[y, x, 1] + 0.114 * img[y, x, 2])
     return out
 
 
@@ -155,40 +144,3 @@ def hamming_volume(census_left: np.ndarray, census_right: np.ndarray, min_disp: 
     out = np.empty((h, w, ndisp), dtype)
     _hamming_rows(census_left, census_right, int(min_disp), float(cost_max), out)
     return out
-
-
-@njit(cache=True, parallel=True)
-def absdiff_volume(left: np.ndarray, right: np.ndarray, min_disp: int, ndisp: int,
-                   cost_max: float, truncate: float) -> np.ndarray:
-    """Mean absolute difference over channels, truncated at ``truncate``.
-
-    ``left``/``right`` are (H, W, C) float32 (C = 1 for grey).
-    """
-    h, w, nc = left.shape
-    out = np.empty((h, w, ndisp), np.float32)
-    inv = 1.0 / nc
-    for y in prange(h):
-        for x in range(w):
-            for k in range(ndisp):
-                xr = x - (min_disp + k)
-                if xr < 0 or xr >= w:
-                    out[y, x, k] = cost_max
-                    continue
-                s = 0.0
-                for c in range(nc):
-                    s += abs(left[y, x, c] - right[y, xr, c])
-                s *= inv
-                out[y, x, k] = np.float32(min(s, truncate))
-    return out
-
-
-@njit(cache=True, parallel=True)
-def mask_invalid_right(cost: np.ndarray, right_valid: np.ndarray, min_disp: int, cost_max: float) -> None:
-    """Set ``cost_max`` wherever the right pixel is outside the right valid mask (in place)."""
-    h, w, nd = cost.shape
-    for y in prange(h):
-        for x in range(w):
-            for k in range(nd):
-                xr = x - (min_disp + k)
-                if 0 <= xr < w and not right_valid[y, xr]:
-                    cost[y, x, k] = cost_max

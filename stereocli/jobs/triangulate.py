@@ -1,0 +1,180 @@
+"""``stereocli triangulate`` as batch work: disparity maps -> work items, and the item
+function workers run (depth map, point cloud, summary per disparity map)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import DataError
+from .items import WorkItem
+
+DISPARITY_NAMES = ("disp0.pfm", "disp0.npy", "disp0.png")
+
+
+def find_disparity(folder: Path) -> Path | None:
+    """The left disparity in a scene/output folder: ``disp0.pfm`` (.npy, .png), else ``disp0*.pfm``."""
+    for name in DISPARITY_NAMES:
+        if (folder / name).is_file():
+            return folder / name
+    others = sorted(folder.glob("disp0*.pfm"))
+    return others[0] if others else None
+
+
+def _match_inputs(folder: Path) -> dict:
+    """The inputs ``stereocli match`` recorded in ``params.json`` beside its outputs (calib, left)."""
+    params = folder / "params.json"
+    if not params.is_file():
+        return {}
+    try:
+        recorded = json.loads(params.read_text()).get("inputs", {})
+    except (OSError, ValueError):
+        return {}
+    return {k: v for k, v in recorded.items() if isinstance(v, str) and Path(v).is_file()}
+
+
+def _find_inputs(inputs: list[str] | tuple[str, ...]) -> tuple[list[tuple[str, Path]], list[str]]:
+    """``(name, disparity path)`` for each input file or folder, and folders without one."""
+    found: list[tuple[str, Path]] = []
+    problems: list[str] = []
+    for raw in inputs:
+        p = Path(raw)
+        if p.is_file():
+            found.append((p.parent.name if p.stem.startswith("disp0") else p.stem, p))
+        elif p.is_dir():
+            d = find_disparity(p)
+            if d is not None:
+                found.append((p.name, d))
+                continue
+            subs = sorted(x for x in p.iterdir() if x.is_dir())
+            for sub in subs:
+                d = find_disparity(sub)
+                if d is not None:
+                    found.append((sub.name, d))
+                elif any(sub.iterdir()):
+                    problems.append(f"{sub}: no disp0*.pfm / disp0.npy / disp0.png")
+            if not subs:
+                raise DataError(f"{p}: no disparity file (disp0.pfm, disp0*.pfm, disp0.npy, disp0.png)")
+        else:
+            raise DataError(f"{p}: no such file or folder")
+    return found, problems
+
+
+def plan_items(inputs: list[str] | tuple[str, ...], output: str, *, calib: str | None = None,
+               image: str | None = None, scenes: str | None = None, confidence: str | None = None,
+               npy: bool = False, depth_format: str | None = None, depth_png16: bool = False,
+               summary: bool = False, options: dict | None = None) -> tuple[list[WorkItem], list[str]]:
+    """Work items for ``triangulate``; returns (items, problems).
+
+    ``output`` ending in ``.ply``/``.npy`` names the cloud of a single disparity file;
+    otherwise it is a folder receiving ``<name>/cloud.ply`` (+ depth, summary).
+    Calibration and colour image default to ``calib.txt``/``im0.png`` beside the disparity,
+    then in ``scenes/<name>/``.
+    """
+    out = Path(output)
+    single = out.suffix.lower() in (".ply", ".npy")
+    found, problems = _find_inputs(inputs)
+    if not found:
+        raise DataError(f"{', '.join(inputs)}: no disparity maps found"
+                        + (f" ({problems[0]})" if problems else ""))
+    if single and len(found) > 1:
+        raise DataError(f"{output}: one output file for {len(found)} disparity maps; give a folder instead")
+    items = []
+    for name, disp in found:
+        def beside(fname: str) -> str | None:
+            for folder in [disp.parent] + ([Path(scenes) / name] if scenes else []):
+                if (folder / fname).is_file():
+                    return str(folder / fname)
+            return None
+
+        recorded = _match_inputs(disp.parent)
+        cal = calib or beside("calib.txt") or recorded.get("calib")
+        if cal is None:
+            problems.append(f"{disp}: no calibration (give --calib, or put calib.txt beside it or in --scenes/{name}/)")
+            continue
+        inputs_ = {"disparity": str(disp), "calibration": str(cal)}
+        img = image or beside("im0.png") or recorded.get("left")
+        if img:
+            inputs_["image"] = str(img)
+        conf = confidence or (beside("conf0.pfm") if not single else None)
+        if conf:
+            inputs_["confidence"] = str(conf)
+        if single:
+            stem = out.with_suffix("")
+            outputs = {"cloud": str(out)}
+            if depth_format:
+                outputs["depth"] = f"{stem}_depth.{depth_format}"
+            if depth_png16:
+                outputs["depth_png16"] = f"{stem}_depth_mm.png"
+            if summary:
+                outputs["summary"] = f"{stem}_summary.json"
+        else:
+            folder = out / name
+            outputs = {"cloud": str(folder / ("cloud.npy" if npy else "cloud.ply")),
+                       "depth": str(folder / f"depth.{depth_format or 'pfm'}")}
+            if depth_png16:
+                outputs["depth_png16"] = str(folder / "depth_mm.png")
+            if summary:
+                outputs["summary"] = str(folder / "summary.json")
+        items.append(WorkItem(name, inputs_, outputs, dict(options or {})))
+    return items, problems
+
+
+def triangulate_item(item: WorkItem) -> dict:
+    """Read disparity, calibration, image; write cloud, depth and summary; returns the summary."""
+    from ..io.atomic import atomic_path, write_text
+    from ..io.calib import load_calibration
+    from ..io.images import read_disparity, read_image
+    from ..io.ply import write_ply
+    from ..triangulate import (FRAME, depth_from_disparity, geometry_from_calibration, summarize, triangulate,
+                               write_depth, write_depth_png16_mm)
+
+    o = item.options
+    disp = read_disparity(item.inputs["disparity"], scale=o.get("scale"))
+    calib = load_calibration(item.inputs["calibration"])
+    geom = geometry_from_calibration(calib, use_q=o.get("use_q", False))
+    if o.get("units"):
+        geom = geom.scaled(o["units"])
+    size = calib.rectified_size or calib.image_size
+    if size and all(size) and tuple(size) != (disp.shape[1], disp.shape[0]):
+        raise DataError(f"{item.inputs['disparity']}: disparity is {disp.shape[1]}x{disp.shape[0]} but "
+                        f"{item.inputs['calibration']} is for {size[0]}x{size[1]}")
+    image = read_image(item.inputs["image"]) if "image" in item.inputs and o.get("color", True) else None
+    if image is not None and image.shape[:2] != disp.shape:
+        raise DataError(f"{item.inputs['image']}: image is {image.shape[1]}x{image.shape[0]} but the disparity "
+                        f"{item.inputs['disparity']} is {disp.shape[1]}x{disp.shape[0]}")
+    conf = None
+    if "confidence" in item.inputs:
+        conf = read_disparity(item.inputs["confidence"])
+        conf = np.where(np.isfinite(conf), conf, 0).astype(np.float32)
+    if not np.isfinite(disp).any():
+        raise DataError(f"{item.inputs['disparity']}: every disparity is invalid (+inf); nothing to triangulate")
+    depth, cloud = triangulate(disp, geom, image=image, confidence=conf, normals=o.get("normals", False),
+                               stride=o.get("stride", 1), min_depth=o.get("min_depth"), max_depth=o.get("max_depth"))
+    if cloud.points.shape[0] == 0:
+        span = summarize(depth_from_disparity(disp, geom), cloud, geom)
+        raise DataError(f"{item.inputs['disparity']}: no point left after --min-depth/--max-depth "
+                        f"(valid depths span {span.get('depth_min')}..{span.get('depth_max')} {geom.units})")
+    out = item.outputs
+    comments = [f"stereocli triangulate: units {geom.units}; frame {FRAME}",
+                f"Z = f*B/(d + doffs), f {geom.f:.6g} px, B {geom.baseline:.6g} {geom.units}, doffs {geom.doffs:.6g} px, "
+                f"cx {geom.cx:.6g}, cy {geom.cy:.6g}"]
+    if out["cloud"].lower().endswith(".npy"):
+        with atomic_path(out["cloud"]) as tmp, open(tmp, "wb") as fh:
+            np.save(fh, cloud.points)
+    else:
+        write_ply(out["cloud"], cloud.points, colors=cloud.colors, normals=cloud.normals,
+                  confidence=cloud.confidence, comments=comments, ascii=o.get("ascii", False))
+    if "depth" in out:
+        write_depth(out["depth"], depth)
+    clipped = 0
+    if "depth_png16" in out:
+        clipped = write_depth_png16_mm(out["depth_png16"], depth, geom.units)
+    info = summarize(depth, cloud, geom)
+    if clipped:
+        info["depth_png16_unrepresentable"] = clipped
+    if "summary" in out:
+        write_text(out["summary"], json.dumps(info, indent=2) + "\n")
+    return info
