@@ -70,7 +70,7 @@ METHODS: dict[str, str] = {
     "gc": "cost: {name: bt, truncate: 20}\naggregation: []\n"
           f"optimizer: {{name: gc, model: truncated_linear, smoothness: 0.25, truncate: 1.5}}\n{_INT}",
     "coop": f"{_CENSUS_BOX}\noptimizer: {{name: coop}}\n{_SUB}",
-    "quality preset": "quality",
+    "adcensus preset": "adcensus",
 }
 _TMP = tempfile.TemporaryDirectory(prefix="stereocli-bench-")
 

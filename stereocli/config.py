@@ -67,15 +67,77 @@ def resolve_config_path(name_or_path: str) -> Path:
     )
 
 
-def load_yaml(path: Path) -> dict:
+#: Limits on a YAML document (a config is a few dozen lines): its size, its nesting, and the
+#: number of values it stands for once aliases are expanded (a "billion laughs" file is tiny
+#: but stands for 10^9 strings).
+YAML_MAX_BYTES = 256 * 1024
+YAML_MAX_DEPTH = 32
+YAML_MAX_VALUES = 20_000
+
+
+def check_yaml_limits(text: str, where: str) -> None:
+    """Raise :class:`ConfigError` when ``text`` exceeds :data:`YAML_MAX_BYTES`, nests deeper than
+    :data:`YAML_MAX_DEPTH` or expands to more than :data:`YAML_MAX_VALUES` values.
+
+    Works on the parser's event stream (no recursion, nothing expanded), stopping at the first
+    event over a limit, so a hostile document fails in milliseconds.
+    """
+    if len(text) > YAML_MAX_BYTES:
+        raise ConfigError(f"{where}: {len(text)} characters; a config is at most {YAML_MAX_BYTES // 1024} KiB")
+    loader_cls = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+    loader = loader_cls(text)
+    sizes: dict[str, int] = {}  # anchor -> number of values its node stands for
+    stack: list[list] = [[None, 0]]  # open collections: [anchor, values so far]
     try:
-        data = yaml.safe_load(path.read_text())
+        while loader.check_event():
+            event = loader.get_event()
+            if isinstance(event, (yaml.SequenceStartEvent, yaml.MappingStartEvent)):
+                stack.append([event.anchor, 0])
+                if len(stack) - 1 > YAML_MAX_DEPTH:
+                    raise ConfigError(f"{where}: line {event.start_mark.line + 1}: nested deeper than "
+                                      f"{YAML_MAX_DEPTH} levels; not a config")
+                continue
+            if isinstance(event, (yaml.SequenceEndEvent, yaml.MappingEndEvent)):
+                anchor, count = stack.pop()
+                count += 1
+            elif isinstance(event, yaml.ScalarEvent):
+                anchor, count = event.anchor, 1
+            elif isinstance(event, yaml.AliasEvent):
+                anchor, count = None, sizes.get(event.anchor, 1)
+            else:
+                continue
+            if anchor is not None:
+                sizes[anchor] = count
+            stack[-1][1] += count
+            if stack[-1][1] > YAML_MAX_VALUES:
+                raise ConfigError(f"{where}: line {event.start_mark.line + 1}: the document stands for more than "
+                                  f"{YAML_MAX_VALUES} values once its aliases are expanded; not a config")
+    finally:
+        loader.dispose()
+
+
+def safe_yaml(text: str, where: str) -> Any:
+    """``yaml.safe_load(text)`` within the limits of :func:`check_yaml_limits`; YAML errors
+    (and the limits) raise :class:`ConfigError` naming ``where`` and the line."""
+    try:
+        check_yaml_limits(text, where)
+        return yaml.safe_load(text)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
-        where = f" line {mark.line + 1}" if mark else ""
-        raise ConfigError(f"{path}:{where} invalid YAML ({getattr(exc, 'problem', exc)})") from None
+        line = f" line {mark.line + 1}" if mark else ""
+        raise ConfigError(f"{where}:{line} invalid YAML ({getattr(exc, 'problem', None) or exc})") from None
+    except RecursionError:
+        raise ConfigError(f"{where}: nested too deeply; not a config") from None
+
+
+def load_yaml(path: Path) -> dict:
+    """A config file's mapping (empty for an empty file), loaded within the YAML limits."""
+    try:
+        with open(path, encoding="utf-8") as fh:
+            text = fh.read(YAML_MAX_BYTES + 1)
     except (OSError, UnicodeDecodeError) as exc:
         raise ConfigError(f"{path}: cannot read ({exc})") from None
+    data = safe_yaml(text, str(path))
     if data is None:
         return {}
     if not isinstance(data, dict):
@@ -139,8 +201,11 @@ def parse_set(assignment: str) -> tuple[list[str], Any]:
     parts = [p for p in key.strip().split(".") if p]
     if len(parts) < 2:
         raise ConfigError(f"--set {assignment}: expected section.key=value (e.g. cost.window=[5,5])")
+    if not raw.strip():
+        return parts, ""
     try:
-        value = yaml.safe_load(raw) if raw.strip() else ""
+        check_yaml_limits(raw, f"--set {key.strip()}")
+        value = yaml.safe_load(raw)
     except yaml.YAMLError:
         value = raw
     return parts, value

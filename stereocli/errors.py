@@ -13,6 +13,8 @@ EXIT_OK = 0
 EXIT_DATA = 1  # unreadable input, runtime failure
 EXIT_USAGE = 2  # bad command line or configuration
 EXIT_PARTIAL = 3  # a batch finished but some items failed
+EXIT_SIGINT = 130  # interrupted (Ctrl-C): 128 + SIGINT
+EXIT_SIGTERM = 143  # terminated: 128 + SIGTERM
 
 
 class StereoError(Exception):
@@ -41,6 +43,27 @@ class OutputExistsError(StereoError):
 
 class MemoryBudgetError(ConfigError):
     """The requested setting cannot fit in the memory budget (exit 2)."""
+
+
+class OutputLockedError(StereoError):
+    """Another live run holds the output folder's lock file (exit 1)."""
+
+    exit_code = EXIT_DATA
+
+
+class Interrupted(KeyboardInterrupt):
+    """SIGINT or SIGTERM arrived; ``exit_code`` is 128 + the signal number (130, 143).
+
+    A :class:`KeyboardInterrupt`, so code that already stops cleanly on Ctrl-C stops on it too.
+    """
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signum)
+        self.signum = signum
+
+    @property
+    def exit_code(self) -> int:
+        return 128 + self.signum
 
 
 def close_matches(word: str, options: Iterable[str]) -> list[str]:

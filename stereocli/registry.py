@@ -7,8 +7,12 @@ with :func:`param`, which records its default, one-line help, unit and range or 
 them. The traits say what the pipeline must know about the stage (memory, the volumes it
 reads, the variants it offers); the pipeline reads nothing else about a stage.
 
-The registry knows no stage: a stage module registers its stages when it is imported, and
-:mod:`stereocli.match.stages` imports every built-in one.
+The registry knows no stage: a stage module registers its stages when it is imported.
+:mod:`stereocli.match.stages` :func:`declare` says which module registers each built-in stage,
+and the registry imports that module the first time one of its stages is asked for
+(:func:`get`), or every declared module when the stages are listed (:func:`names`,
+:func:`stages`). So a run imports only the stage modules, and with them the compiled kernels,
+that its config names.
 
 Example
 -------
@@ -28,6 +32,8 @@ from __future__ import annotations
 
 import dataclasses
 import fnmatch
+import importlib
+import math
 import typing
 from dataclasses import dataclass, field
 from typing import Any, Callable
@@ -251,6 +257,8 @@ def _coerce(value: Any, tp: Any, where: str, meta: dict) -> Any:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ConfigError(f"{where}: expected a number, got {value!r}")
         value = float(value)
+        if not math.isfinite(value):  # NaN passes every comparison below
+            raise ConfigError(f"{where}: expected a finite number, got {value!r}")
     elif tp is str:
         if not isinstance(value, str):
             raise ConfigError(f"{where}: expected a string, got {value!r}")
@@ -269,6 +277,8 @@ def _coerce(value: Any, tp: Any, where: str, meta: dict) -> Any:
 
 
 _REGISTRY: dict[str, dict[str, Stage]] = {kind: {} for kind in KINDS}
+#: kind -> stage name -> the module that registers it when imported (:func:`declare`).
+_DECLARED: dict[str, dict[str, str]] = {kind: {} for kind in KINDS}
 
 
 @dataclass(frozen=True)
@@ -309,27 +319,48 @@ def _unregister(kind: str, name: str) -> None:
     _REGISTRY[kind].pop(name, None)
 
 
+def declare(module: str, kind: str, stage_names) -> None:
+    """Importing ``module`` (a dotted name) registers these stages of ``kind``: it is imported
+    when one of them is first asked for, so stage modules load only when a run uses them."""
+    if kind not in KINDS:
+        raise ValueError(f"unknown stage kind {kind!r}; valid: {', '.join(KINDS)}")
+    for name in stage_names:
+        _DECLARED[kind][name] = module
+
+
+def _import_declared(kinds) -> None:
+    """Import every declared module that registers a stage of ``kinds`` not registered yet."""
+    pending = {module for k in kinds for n, module in _DECLARED[k].items() if n not in _REGISTRY[k]}
+    for module in sorted(pending):
+        importlib.import_module(module)
+
+
 def get(kind: str, name: str, *, source: str = "<config>", section: str = "") -> Stage:
-    """Return the stage ``name`` of ``kind`` or raise :class:`ConfigError` with close matches."""
+    """Return the stage ``name`` of ``kind`` (importing its declared module on first use) or
+    raise :class:`ConfigError` with close matches."""
     if kind not in _REGISTRY:
         raise ConfigError(f"unknown stage kind {kind!r}; valid: {', '.join(KINDS)}")
-    try:
-        return _REGISTRY[kind][name]
-    except KeyError:
+    stage = _REGISTRY[kind].get(name)
+    if stage is None and name in _DECLARED[kind]:
+        importlib.import_module(_DECLARED[kind][name])
+        stage = _REGISTRY[kind].get(name)
+    if stage is None:
         where = f"{source}: {section or kind}.name"
-        raise ConfigError(
-            f"{where}: unknown {kind} stage {name!r}" + _suggest(str(name), list(_REGISTRY[kind]))
-        ) from None
+        known = sorted(set(_REGISTRY[kind]) | set(_DECLARED[kind]))
+        raise ConfigError(f"{where}: unknown {kind} stage {name!r}" + _suggest(str(name), known))
+    return stage
 
 
 def names(kind: str, pattern: str = "*") -> list[str]:
     """Sorted names of the registered stages of ``kind`` matching the fnmatch ``pattern``."""
+    _import_declared([kind])
     return sorted(n for n in _REGISTRY[kind] if fnmatch.fnmatch(n, pattern))
 
 
 def stages(kind: str | None = None) -> list[Stage]:
     """All registered stages (of one kind, or of all kinds in pipeline order)."""
     kinds = [kind] if kind else list(KINDS)
+    _import_declared(kinds)
     return [_REGISTRY[k][n] for k in kinds for n in sorted(_REGISTRY[k])]
 
 

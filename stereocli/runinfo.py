@@ -31,20 +31,28 @@ class RunRecord:
     """Collects per-item status and timings; written as ``run.json`` beside the outputs."""
 
     def __init__(self, command: str, argv: list[str], config: dict | None = None) -> None:
+        started = time.strftime("%Y-%m-%dT%H:%M:%S%z")  # create the record before the batch runs
+        self._t0 = time.perf_counter()
         self.data: dict[str, Any] = {
             "command": command,
             "argv": argv,
             "versions": versions(),
-            "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+            "started": started,
             "config": config,
             "items": [],
+            "interrupted": False,
         }
-        self._t0 = time.perf_counter()
 
     def add_item(self, item: dict) -> None:
         self.data["items"].append(item)
 
+    def interrupted(self, signal_name: str, total: int) -> None:
+        """Mark the run as stopped by ``signal_name`` with ``total`` items planned (``items`` holds
+        the ones that finished)."""
+        self.data.update(interrupted=True, signal=signal_name, planned=total)
+
     def write(self, path: str | Path) -> None:
+        """Write ``run.json``; ``seconds`` runs from the record's creation (before the batch)."""
         items = self.data["items"]
         self.data["seconds"] = round(time.perf_counter() - self._t0, 4)
         self.data["summary"] = {

@@ -29,6 +29,31 @@ def samples() -> Path:
     return SAMPLES
 
 
+def two_scenes(root: Path, width: int, height: int) -> Path:
+    """Synthetic scene folders ``root/planes`` and ``root/curved`` (MiddEval3 layout, calib.txt)."""
+    from stereocli.synth.scenes import write_scene
+
+    for i, name in enumerate(("planes", "curved")):
+        write_scene(root / name, name, width=width, height=height, seed=i)
+    return root
+
+
+def assert_clean(out: Path, complete: tuple[str, ...] = ()) -> None:
+    """Nothing partial on disk: ``out`` is absent, or holds ``run.json`` and the ``complete``
+    folders only, each with its completion marker and every output the marker lists."""
+    if not out.exists():
+        assert not complete
+        return
+    assert {p.name for p in out.iterdir()} <= {"run.json", *complete}, sorted(p.name for p in out.iterdir())
+    for name in complete:
+        markers = list((out / name).glob(".stereocli-*.done"))
+        assert len(markers) == 1, f"{name}: no completion marker"
+        for listed in json.loads(markers[0].read_text())["outputs"]:
+            assert (out / name / listed).is_file()
+    leftovers = [p for p in out.rglob("*") if "tmp" in p.name or p.name.endswith((".lock", ".stage", ".old"))]
+    assert not leftovers, leftovers
+
+
 @dataclass
 class CliRun:
     """Outcome of one in-process ``stereocli`` invocation."""

@@ -144,6 +144,8 @@ def test_worker_killed_mid_item_is_retried_and_nothing_partial_remains(tmp_path,
     assert result.exit_code == 0, [r.message for r in result.failed]
     assert [r.name for r in result.results] == ["s0", "s1", "s2", "s3"]  # each recorded once, in order
     assert all(r.status == "ok" for r in result.results)
+    # Dask ran s1 again on another worker: both runs count.
+    assert {r.name: r.attempts for r in result.results} == {"s0": 1, "s1": 2, "s2": 1, "s3": 1}
     _no_temporaries(out)
     assert _data_bytes(out) == _data_bytes(ref)
     for pfm in out.glob("*/disp0.pfm"):

@@ -11,12 +11,12 @@ import pytest
 PACKAGE = Path(__file__).resolve().parents[1] / "stereocli"
 
 #: The layering (README, Architecture): a module may import its own layer or lower ones.
-#: cli → jobs → {match, rectify, triangulate, evaluate, calib, synth} → {io, registry, config,
-#: viz, runinfo, process} → errors
+#: cli → jobs → {match, rectify, triangulate, evaluate, calib, synth, features} → {io, registry,
+#: config, viz, runinfo, process} → errors
 LAYERS = {
     "errors": 0,
     "io": 1, "registry": 1, "config": 1, "viz": 1, "runinfo": 1, "process": 1,
-    "match": 2, "rectify": 2, "triangulate": 2, "evaluate": 2, "calib": 2, "synth": 2,
+    "match": 2, "rectify": 2, "triangulate": 2, "evaluate": 2, "calib": 2, "synth": 2, "features": 2,
     "jobs": 3,
     "cli": 4,
     "__main__": 5,

@@ -16,15 +16,12 @@ import pytest
 
 from stereocli.io.images import write_image
 from stereocli.io.pfm import read_pfm
-from stereocli.synth.scenes import write_scene
+from conftest import two_scenes
 
 
 @pytest.fixture(scope="module")
 def small_scenes(tmp_path_factory) -> Path:
-    root = tmp_path_factory.mktemp("scenes")
-    for i, name in enumerate(("planes", "curved")):
-        write_scene(root / name, name, width=160, height=120, seed=i)
-    return root
+    return two_scenes(tmp_path_factory.mktemp("scenes"), 160, 120)
 
 
 def test_match_writes_outputs_and_run_record(run_cli, tmp_path, small_scenes):
@@ -79,10 +76,12 @@ def test_range_from_options_or_calib(run_cli, tmp_path, small_scenes):
     pair.mkdir()
     shutil.copy(small_scenes / "planes" / "im0.png", pair / "l.png")
     shutil.copy(small_scenes / "planes" / "im1.png", pair / "r.png")
+    # Neither an option nor a calib.txt: the range is estimated from the images.
     r = run_cli("match", pair / "l.png", pair / "r.png", "-o", tmp_path / "o")
-    assert r.code == 2 and "--ndisp" in r.err
-    r = run_cli("match", pair / "l.png", pair / "r.png", "-o", tmp_path / "o", "--ndisp", "48")
-    assert r.code == 0 and (tmp_path / "o" / "l" / "disp0.pfm").is_file()
+    assert r.code == 0 and json.loads((tmp_path / "o" / "l" / "params.json").read_text())["range"]["source"] == "estimated"
+    r = run_cli("match", pair / "l.png", pair / "r.png", "-o", tmp_path / "o2", "--ndisp", "48")
+    assert r.code == 0 and (tmp_path / "o2" / "l" / "disp0.pfm").is_file()
+    assert json.loads((tmp_path / "o2" / "l" / "params.json").read_text())["ndisp"] == 48
 
 
 def test_bad_inputs_one_line_errors(run_cli, tmp_path, small_scenes):

@@ -243,9 +243,9 @@ def test_match_cli_runs_every_method(tmp_path, base_yaml):
         assert disp.shape == gt.shape and np.isfinite(disp).all()
 
 
-def test_quality_preset_runs():
+def test_adcensus_preset_runs():
     left, right, gt, _ = step_scene()
-    result = match_pair(left, right, build_config(["quality"]), ndisp=14)
+    result = match_pair(left, right, build_config(["adcensus"]), ndisp=14)
     assert np.isfinite(result.disparity).all()
     assert np.median(np.abs(result.disparity - gt)) < 0.5
 

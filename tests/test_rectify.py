@@ -58,7 +58,7 @@ def test_rectify_cli_writes_scene_folder(scene_pair, run_cli):
     res = run_cli("rectify", root / "pair" / "left.png", root / "pair" / "right.png", "--calib", root / "rig.yml",
                   "-o", out, "--check", "--min-depth", 0.8)
     assert res.code == 0, res.err
-    scene = out / "left"
+    scene = out / "pair"  # left.png/right.png of one folder: that folder is the scene
     for name in ("im0.png", "im1.png", "valid0.png", "valid1.png", "calib.txt", "check.png"):
         assert (scene / name).is_file(), name
     mb = read_calib_txt(scene / "calib.txt")
@@ -104,3 +104,20 @@ def test_rectify_opencv_folder_layout(shared_data, tmp_path, run_cli):
     names = sorted(p.name for p in (tmp_path / "rect").iterdir() if p.is_dir())
     assert len(names) == 13 and names[0] == "01"
     assert load_calibration(tmp_path / "rect" / "01" / "calib.txt").units == "unit"
+    # Each pair's calib.txt range reaches its board: the corners' disparities (up to ~203 px).
+    from stereocli.io.middlebury import read_calib_txt
+
+    reached = 0
+    for name in names:
+        pair = tmp_path / "rect" / name
+        left, right = (cv2.imread(str(pair / f"im{i}.png"), cv2.IMREAD_GRAYSCALE) for i in (0, 1))
+        found_l, corners_l = cv2.findChessboardCorners(left, (9, 6))
+        found_r, corners_r = cv2.findChessboardCorners(right, (9, 6))
+        if found_l and found_r:
+            reached += 1
+            board = corners_l.reshape(-1, 2)[:, 0] - corners_r.reshape(-1, 2)[:, 0]
+            assert board.max() < read_calib_txt(pair / "calib.txt").ndisp, (name, board.max())
+    assert reached >= 10
+    # This project's own rectification raises no row-alignment warning.
+    res = run_cli("match", tmp_path / "rect", "-o", tmp_path / "disp", "-c", "fast")
+    assert res.code == 0 and "not aligned" not in res.err, res.err

@@ -1,5 +1,5 @@
 """ADCensus refinement (Mei et al. 2011): two-threshold cross arms, region voting, proper
-interpolation; the two-threshold option of the ``cross`` aggregation; the quality preset."""
+interpolation; the two-threshold option of the ``cross`` aggregation; the adcensus preset."""
 
 from __future__ import annotations
 
@@ -236,8 +236,8 @@ def test_cross_two_threshold_option():
 
 
 @pytest.mark.shared_data
-def test_quality_preset_meets_tsukuba_target(shared_data):
-    """The quality preset scores ≤ 1.5 % nonocc bad > 1 on Tsukuba (derived mask)."""
+def test_adcensus_preset_meets_tsukuba_target(shared_data):
+    """The adcensus preset scores ≤ 1.5 % nonocc bad > 1 on Tsukuba (derived mask)."""
     import cv2
 
     from stereocli.match.config import build_config
@@ -249,6 +249,6 @@ def test_quality_preset_meets_tsukuba_target(shared_data):
     right = cv2.imread(str(folder / "im4.png"))[..., ::-1].copy()
     gt = cv2.imread(str(folder / "disp3.pgm"), cv2.IMREAD_UNCHANGED).astype(np.float32) / 16
     gt[gt == 0] = np.inf
-    disp = match_pair(left, right, build_config(["quality"], []), ndisp=16).disparity
+    disp = match_pair(left, right, build_config(["adcensus"], []), ndisp=16).disparity
     assert np.isfinite(disp).all()
     assert middlebury_stats(disp, gt, derive_nonocc_mask(gt))["bad1.0"] <= 1.5

@@ -27,7 +27,7 @@ def test_calibrate_rectify_match_triangulate(tmp_path, run_cli):
     assert res.code == 0, res.err
     import plyfile  # the test extra installs it
 
-    ply = plyfile.PlyData.read(str(tmp_path / "cloud" / "left" / "cloud.ply"))
+    ply = plyfile.PlyData.read(str(tmp_path / "cloud" / "pair" / "cloud.ply"))
     assert any("units m;" in c for c in ply.comments)
     v = ply["vertex"]
     pts = np.stack([v["x"], v["y"], v["z"]], 1).astype(np.float64)

@@ -65,9 +65,24 @@ def _load_cache(cache: Path | None) -> dict:
         data = json.loads(cache.read_text())
     except (OSError, ValueError):
         return {}  # a damaged cache is only a lost speed-up
-    if not isinstance(data, dict) or data.get("version") != CACHE_VERSION:
+    if not isinstance(data, dict) or data.get("version") != CACHE_VERSION or not isinstance(data.get("entries"), dict):
         return {}
-    return data.get("entries", {})
+    return data["entries"]
+
+
+def _cached(path: str, entry) -> Detection | None:
+    """The cached detection of ``path``, or None when absent or damaged (detected again)."""
+    if not isinstance(entry, dict):
+        return None
+    try:
+        det = Detection.from_json(path, entry)
+        w, h = det.size
+        ok = det.corners is None or (det.corners.ndim == 2 and det.corners.shape[1] == 2
+                                     and np.isfinite(det.corners).all())
+        ok = ok and (det.ids is None or det.corners is not None and det.ids.shape == (det.corners.shape[0],))
+        return det if ok and int(w) > 0 and int(h) > 0 and isinstance(det.reason, str) else None
+    except (KeyError, TypeError, ValueError):
+        return None
 
 
 def _detect_one(path: str, pattern: Pattern, detector: str) -> Detection:
@@ -97,8 +112,9 @@ def detect_all(paths: list[str], pattern: Pattern, *, detector: str = "auto", jo
         if not Path(p).is_file():
             raise DataError(f"{p}: no such file")
         keys[p] = cache_key(p, pattern, detector)
-        if keys[p] in entries:
-            out[p] = Detection.from_json(p, entries[keys[p]])
+        cached = _cached(p, entries.get(keys[p]))
+        if cached is not None:
+            out[p] = cached
         else:
             todo.append(p)
     if todo:
@@ -108,10 +124,14 @@ def detect_all(paths: list[str], pattern: Pattern, *, detector: str = "auto", jo
         try:
             with cf.ThreadPoolExecutor(max_workers=max(1, jobs)) as pool:
                 futures = {pool.submit(_detect_one, p, pattern, detector): p for p in todo}
-                for fut in cf.as_completed(futures):
-                    det = fut.result()
-                    out[det.path] = det
-                    bar.update(1)
+                try:
+                    for fut in cf.as_completed(futures):
+                        det = fut.result()
+                        out[det.path] = det
+                        bar.update(1)
+                except BaseException:  # Ctrl-C or a bad image: do not wait for the queued images
+                    pool.shutdown(wait=False, cancel_futures=True)
+                    raise
         finally:
             bar.close()
         if cache_path is not None:

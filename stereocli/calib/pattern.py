@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from ..errors import ConfigError
+from ..errors import ConfigError, did_you_mean
 
 KINDS = ("chessboard", "circles", "acircles", "charuco")
 DETECTORS = ("auto", "classic", "sb")
@@ -42,6 +42,8 @@ class Pattern:
             raise ConfigError(f"--square must be positive, got {self.square}")
         if self.kind == "charuco" and not (0 < self.marker < 1):
             raise ConfigError(f"ChArUco marker fraction must be in (0, 1), got {self.marker}")
+        if self.kind == "charuco":
+            _aruco_dictionary_id(self.dictionary)  # an unknown name is a usage error, before any detection
 
     @property
     def size(self) -> tuple[int, int]:
@@ -70,12 +72,20 @@ class Pattern:
     def charuco_board(self):
         if not hasattr(cv2, "aruco") or not hasattr(cv2.aruco, "CharucoDetector"):
             raise ConfigError("this OpenCV build has no cv2.aruco.CharucoDetector (ChArUco unsupported)")
-        name = self.dictionary.upper()
-        if not hasattr(cv2.aruco, name):
-            raise ConfigError(f"unknown ArUco dictionary {self.dictionary!r} (e.g. DICT_5X5_100, DICT_4X4_50)")
-        dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name))
+        dictionary = cv2.aruco.getPredefinedDictionary(_aruco_dictionary_id(self.dictionary))
         return cv2.aruco.CharucoBoard((self.cols + 1, self.rows + 1), float(self.square),
                                       float(self.square * self.marker), dictionary)
+
+
+def _aruco_dictionary_id(name: str) -> int:
+    """OpenCV's id of a predefined ArUco dictionary (``DICT_5X5_100``), or a ConfigError listing them."""
+    aruco = getattr(cv2, "aruco", None)
+    known = sorted(n for n in dir(aruco) if n.startswith("DICT_")) if aruco is not None else []
+    value = getattr(aruco, str(name).upper(), None) if str(name).upper().startswith("DICT_") else None
+    if not isinstance(value, int):
+        raise ConfigError(f"--dictionary {name!r}: unknown ArUco dictionary" + did_you_mean(str(name).upper(), known)
+                          + f"; e.g. DICT_5X5_100, DICT_4X4_50 ({len(known)} predefined)")
+    return value
 
 
 _PATTERN = re.compile(r"^\s*(\d+)\s*[xX×,]\s*(\d+)\s*$")

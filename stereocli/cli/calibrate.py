@@ -48,7 +48,7 @@ FORMAT_CHOICE = click.Choice(["opencv", "ros", "middlebury"])
 @click.option("--pattern-type", type=click.Choice(["chessboard", "circles", "acircles", "charuco"]),
               default="chessboard", show_default=True, help="Calibration target.")
 @click.option("--dictionary", default="DICT_5X5_100", show_default=True, help="ChArUco ArUco dictionary.")
-@click.option("--marker-size", type=click.FloatRange(0, 1, min_open=True, max_open=True), default=0.75,
+@click.option("--marker-size", type=options.Finite(0, 1, min_open=True, max_open=True), default=0.75,
               show_default=True, help="ChArUco marker side as a fraction of the square side.")
 @click.option("--detector", type=click.Choice(["auto", "classic", "sb"]), default="auto", show_default=True,
               help="Chessboard detector: classic + cornerSubPix, the SB (sector-based) one, or classic then SB.")
@@ -60,9 +60,9 @@ FORMAT_CHOICE = click.Choice(["opencv", "ros", "middlebury"])
 @click.option("--fisheye", is_flag=True, help="Fisheye (equidistant) model, k1..k4.")
 @click.option("--same-focal", is_flag=True, help="With --joint: both cameras share fx, fy.")
 @click.option("--joint", is_flag=True, help="Refine intrinsics in the stereo solve (default: fixed after per-camera calibration).")
-@click.option("--max-view-error", type=click.FloatRange(min=0, min_open=True), metavar="PX",
+@click.option("--max-view-error", type=options.Finite(min=0, min_open=True), metavar="PX",
               help="Drop views whose RMS exceeds PX and recalibrate.")
-@click.option("--alpha", type=click.FloatRange(0, 1), default=0.0, show_default=True,
+@click.option("--alpha", type=options.Finite(0, 1), default=0.0, show_default=True,
               help="Rectification alpha stored in the file (P1, P2, Q).")
 @click.option("--swap", is_flag=True, help="Exchange left and right (rig wired the other way round).")
 @click.option("--to", "out_format", type=FORMAT_CHOICE, default=None, help="Output format (default: from the extension).")
@@ -143,7 +143,7 @@ def calibrate_cmd(ctx, input_dir, output, pattern_text, square_text, units, patt
 @click.argument("dst", metavar="OUT", type=click.Path(dir_okay=False))
 @click.option("--to", "fmt", type=FORMAT_CHOICE, default=None,
               help="Output format (default: .txt → middlebury, else opencv by extension).")
-@click.option("--alpha", type=click.FloatRange(0, 1), default=None,
+@click.option("--alpha", type=options.Finite(0, 1), default=None,
               help="Rectify with this alpha when the output needs P1/P2 and the input has none (default 0).")
 @click.option("--ndisp", type=click.IntRange(0, 100000), default=0, help="ndisp for a Middlebury calib.txt.")
 @options.overwrite

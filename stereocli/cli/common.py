@@ -2,46 +2,81 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
+import signal
 import sys
 from pathlib import Path
+from typing import Callable
 
 import click
 
-from ..errors import EXIT_DATA, EXIT_OK, EXIT_PARTIAL
-from ..jobs.items import BatchResult, ItemResult
+from ..errors import EXIT_DATA
+from ..jobs.items import BatchResult, ItemResult, WorkItem, batch_exit_code
 from ..runinfo import RunRecord
 
 
 def unpaired_failures(problems: list[str]) -> list[ItemResult]:
     """Inputs that could not be paired, as failed items (reported, never dropped)."""
-    return [ItemResult(name=p.split(":")[0], status="failed", message=p) for p in problems]
+    return [ItemResult(name=p.split(":")[0], status="failed", message=p, exit_code=EXIT_DATA) for p in problems]
+
+
+def run_batch_command(command: str, items: list[WorkItem], item_fn: Callable[[WorkItem], dict], *,
+                      outdir: Path | None, config: dict | None, verbosity: int,
+                      extra_failures: list[ItemResult] = (), **batch_options) -> tuple[int, BatchResult]:
+    """Run a batch subcommand's items and report: hold ``outdir``'s lock (one run per output
+    folder), start the run record, :func:`~stereocli.jobs.executors.run_batch` with
+    ``batch_options``, then :func:`finish_batch` into ``outdir/run.json``.
+    With ``outdir`` None (a single output file) there is no lock and no run record. Returns the
+    exit code and the batch's results."""
+    from ..jobs.executors import run_batch
+    from ..jobs.lock import output_lock
+    from ..process import deferred_interrupts
+
+    with output_lock(outdir) if outdir is not None else contextlib.nullcontext():
+        record = RunRecord(command, argv(), config)
+        result = run_batch(items, item_fn, desc=command, verbose_errors=verbosity >= 2, **batch_options)
+        with deferred_interrupts():  # a signal now waits until run.json is written
+            code = finish_batch(result, record, None if outdir is None else Path(outdir) / "run.json", verbosity,
+                                extra_failures)
+    return code, result
 
 
 def finish_batch(result: BatchResult, record: RunRecord, record_path: Path | None, verbosity: int,
                  extra_failures: list[ItemResult] = ()) -> int:
     """Write the run record, report failures on stderr, return the exit code.
 
-    0 when every item is ok or skipped; 1 when nothing succeeded; 3 when some items failed.
+    0 when every item is ok or skipped; 3 when some items failed; when none succeeded, 2 if
+    every failure was a usage/configuration error, else 1; 130/143 when interrupted.
     """
     items = list(result.results) + list(extra_failures)
     for item in items:
         record.add_item(item.as_dict())
+    if result.interrupted:
+        record.interrupted(signal.Signals(result.interrupted).name, (result.total or 0) + len(extra_failures))
     if record_path is not None:
         record.write(record_path)
     failed = [i for i in items if i.status == "failed"]
     ok = [i for i in items if i.status == "ok"]
+    if verbosity >= 0:
+        for item in ok:
+            for warning in item.details.get("warnings", ()):
+                click.echo(f"Warning: {item.name}: {warning}", err=True)
     skipped = [i for i in items if i.status == "skipped"]
     for item in failed:
         click.echo(f"Error: {item.message.splitlines()[0] if item.message else item.name + ': failed'}", err=True)
+    if result.interrupted:
+        where = f"; run record: {record_path}" if record_path is not None else ""
+        click.echo(f"Interrupted ({signal.Signals(result.interrupted).name}): {len(ok)} ok, {len(skipped)} skipped, "
+                   f"{len(failed)} failed of {(result.total or 0) + len(extra_failures)}; unfinished items were "
+                   f"cancelled and left nothing{where}; --skip-existing resumes", err=True)
+        return result.exit_code
     if verbosity >= 0:
         summary = f"{len(ok)} ok, {len(skipped)} skipped, {len(failed)} failed"
         if record_path is not None:
             summary += f"; run record: {record_path}"
         click.echo(summary, err=True)
-    if not failed:
-        return EXIT_OK
-    return EXIT_DATA if not ok and not skipped else EXIT_PARTIAL
+    return batch_exit_code(items)
 
 
 def print_json(data) -> None:

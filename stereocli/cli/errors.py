@@ -7,17 +7,46 @@ import traceback
 
 import click
 
-from ..errors import EXIT_DATA, EXIT_USAGE, StereoError
+from ..errors import EXIT_DATA, EXIT_SIGINT, EXIT_USAGE, StereoError
 
 
-def _verbosity(argv: list[str]) -> int:
+def _verbosity(argv: list[str], flag: str = "v") -> int:
+    """How many times ``-v`` (or ``flag``) appears in ``argv``, before Click parses it."""
+    long = {"v": "--verbose", "q": "--quiet"}[flag]
     level = 0
     for arg in argv:
-        if arg == "--verbose":
+        if arg == long:
             level += 1
-        elif arg.startswith("-") and not arg.startswith("--") and set(arg[1:]) == {"v"}:
+        elif arg.startswith("-") and not arg.startswith("--") and set(arg[1:]) == {flag}:
             level += len(arg) - 1
     return level
+
+
+def run_captured(cli: click.Group, argv: list[str] | None = None) -> int:
+    """:func:`run_with_error_handling` as the console entry point runs it: SIGINT and SIGTERM
+    stop the command cleanly (exit 130/143), and output third-party code writes straight to
+    stderr (libpng, OpenCV, worker processes, Python warnings) is collected and reported after
+    the command: one line saying how much there was, or all of it with ``-v`` (``-vv`` shows
+    it as it happens)."""
+    from ..process import capture_native_stderr, interrupts_raise
+
+    argv = list(sys.argv[1:] if argv is None else argv)
+    verbose, quiet = _verbosity(argv), _verbosity(argv, "q")
+    noise = capture_native_stderr(enabled=verbose < 2)
+    try:
+        with interrupts_raise(), noise:
+            code = run_with_error_handling(cli, argv)
+    except KeyboardInterrupt as exc:  # arrived after the command ended, while cleaning up
+        code = getattr(exc, "exit_code", EXIT_SIGINT)
+    lines = noise.lines()
+    if lines and verbose >= 1:
+        click.echo(f"third-party output ({len(lines)} lines):", err=True)
+        for line in lines:
+            click.echo(f"  {line}", err=True)
+    elif lines and quiet == 0:
+        click.echo(f"Note: {len(lines)} line(s) of third-party output hidden (first: {lines[0].strip()[:100]!r}); "
+                   "-v shows them", err=True)
+    return code
 
 
 def run_with_error_handling(cli: click.Group, argv: list[str] | None = None) -> int:
@@ -41,9 +70,15 @@ def run_with_error_handling(cli: click.Group, argv: list[str] | None = None) -> 
             traceback.print_exc()
         click.echo(f"Error: {exc}", err=True)
         return exc.exit_code
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
         click.echo("Interrupted.", err=True)
-        return 130
+        return getattr(exc, "exit_code", EXIT_SIGINT)
+    except OSError as exc:  # disk full, permissions: name the file
+        if verbose >= 2:
+            traceback.print_exc()
+        where = f"{exc.filename}: " if exc.filename else ""
+        click.echo(f"Error: {where}{exc.strerror or exc}", err=True)
+        return EXIT_DATA
     except Exception as exc:  # noqa: BLE001 - last resort: one line unless -vv
         if verbose >= 2:
             traceback.print_exc()

@@ -35,10 +35,10 @@ def _parse_thresholds(_ctx: click.Context, _param: click.Parameter, value: str |
                    "0.5 px at Q); native: px of the scored grid (unofficial for H/Q GT).")
 @click.option("--same-resolution", is_flag=True,
               help="UNOFFICIAL: score at the estimate's size (GT subsampled) instead of upsampling the estimate.")
-@click.option("--ndisp", type=click.FloatRange(min=0, min_open=True), default=None,
+@click.option("--ndisp", type=options.Finite(min=0, min_open=True), default=None,
               help="Disparity range at the estimate's resolution for clipping [default: calib.txt ndisp; "
                    "none for v2].")
-@click.option("--gt-scale", type=click.FloatRange(min=0, min_open=True), default=None,
+@click.option("--gt-scale", type=options.Finite(min=0, min_open=True), default=None,
               help="v2 8-bit GT scale [default per scene: Tsukuba 16, Venus 8, Teddy/Cones 4].")
 @click.option("--error-maps", "error_maps", type=click.Path(file_okay=False, path_type=str), default=None,
               metavar="DIR", help="Write DIR/<scene>/{disparity,gt,error,bad}.png (shared colour scale, legend).")

@@ -24,6 +24,7 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
     "stages": ("stages", "stages_cmd", "List every registered stage and its parameters."),
     "config": ("config_cmd", "config_group", "Show the effective matching configuration."),
     "demo": ("demo", "demo_cmd", "Run the whole chain on the bundled samples and print the scores."),
+    "warmup": ("warmup", "warmup_cmd", "Compile the matching kernels ahead of the first run (Docker images, CI caches)."),
 }
 
 
@@ -70,15 +71,35 @@ def cli(ctx: click.Context, verbose: int, quiet: int) -> None:
     Disparity is float32 pixels referenced to the left image (x_right = x_left - d);
     invalid pixels are +inf. Run `stereocli demo OUTDIR` to see the whole chain.
     """
-    from ..process import keep_freed_memory
+    from ..process import keep_freed_memory, notify_compilation, prepare_kernels
 
     keep_freed_memory()  # process-wide: freed large buffers stay in the process between pairs
+    prepare_kernels()  # before numba starts: sleeping idle threads, a faster start
     ctx.ensure_object(dict)
     ctx.obj["verbosity"] = ctx.obj.get("verbosity", 0) + verbose - quiet
+    notify_compilation(lambda: _compile_notice(ctx))
+
+
+#: Said on stderr when kernels compile (the numbers are the README's "Start-up and first run").
+COMPILE_NOTICE = ("stereocli: compiling the numba kernels this run needs (first use after installing, or of "
+                  "another preset or image type): about 15 s, once; later runs load them from the cache")
+
+
+def _compile_notice(ctx: click.Context) -> None:
+    """The first kernel of this run compiles: say so, and compile the map stages of the config
+    being matched in a helper process meanwhile (they are needed last)."""
+    if ctx.obj.get("verbosity", 0) >= 0:  # -q: errors only
+        click.echo(COMPILE_NOTICE, err=True)
+    pipeline = sys.modules.get("stereocli.match.pipeline")
+    if pipeline is not None and pipeline.last_config() is not None:
+        from ..match.warmup import compile_aside
+
+        compile_aside(pipeline.last_config())
 
 
 def main(argv: list[str] | None = None) -> None:
-    """Console entry point: run the group and map library errors to exit codes."""
-    from .errors import run_with_error_handling
+    """Console entry point: run the group, map library errors and signals to exit codes, and
+    keep third-party output apart (:func:`~stereocli.cli.errors.run_captured`)."""
+    from .errors import run_captured
 
-    sys.exit(run_with_error_handling(cli, argv))
+    sys.exit(run_captured(cli, argv))

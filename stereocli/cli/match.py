@@ -7,7 +7,7 @@ from pathlib import Path
 import click
 
 from . import options
-from .common import argv, finish_batch, print_json, unpaired_failures
+from .common import print_json, run_batch_command, unpaired_failures
 
 
 @click.command("match")
@@ -16,9 +16,14 @@ from .common import argv, finish_batch, print_json, unpaired_failures
               help="Output folder; each pair writes OUTDIR/<name>/disp0.pfm.")
 @options.config_files
 @options.sets
-@click.option("--ndisp", type=click.IntRange(1, 100000), help="Number of disparities searched (else calib.txt ndisp).")
+@click.option("--ndisp", type=options.NDISP, metavar="N|auto",
+              help="Number of disparities searched; 'auto' estimates each pair's range from its images "
+                   "(default: calib.txt ndisp, else estimated).")
 @click.option("--min-disp", type=int, default=None, help="Smallest disparity searched, px (default 0; may be negative).")
-@click.option("--png16", "png16_scale", type=float, default=None, metavar="SCALE",
+@click.option("--require-aligned", is_flag=True,
+              help="Fail a pair whose rows are not aligned (else a warning): it needs rectifying first.")
+@click.option("--png16", "png16_scale", type=options.Finite(min=0, max=65535, min_open=True), default=None,
+              metavar="SCALE",
               help="Also write disp0.png as uint16 round(d*SCALE), 0 = invalid (KITTI uses 256).")
 @click.option("--npy", is_flag=True, help="Also write disp0.npy (float32).")
 @click.option("--viz", is_flag=True, help="Also write disp0_viz.png, an 8-bit colour preview (not data).")
@@ -31,26 +36,29 @@ from .common import argv, finish_batch, print_json, unpaired_failures
 @options.verbose
 @click.pass_context
 def match_cmd(ctx, inputs, outdir, config_files, sets, ndisp, min_disp, png16_scale, npy, viz, confidence,
-              right, keep_invalid, overwrite, skip_existing, dry_run, jobs, scheduler, retries, split_strips):
+              right, keep_invalid, overwrite, skip_existing, dry_run, jobs, scheduler, retries, split_strips,
+              require_aligned):
     """Compute disparity maps for rectified pairs.
 
     INPUT is a pair of image files, a scene folder (im0.png + im1.png [+ calib.txt]), a folder
     of scene folders, or a folder with left/ and right/ subfolders paired by file stem.
-    The disparity range comes from --ndisp/--min-disp, else from each scene's calib.txt.
+    The disparity range comes from --ndisp/--min-disp, else from each scene's calib.txt, else
+    it is estimated from the images (recorded in params.json with its evidence). Every pair's
+    row alignment is measured; a pair whose rows are out of line gets a warning.
 
     \b
     Examples:
       stereocli match samples/scenes -o out
-      stereocli match left.png right.png -o out --ndisp 64 --set optimizer.p2=120
+      stereocli match left.png right.png -o out --ndisp 64 --set optimizer.p2=1.2
+      stereocli match my_pairs/ -o out --ndisp auto --require-aligned
       stereocli match data/ -o out -c fast --jobs 2 --skip-existing
       stereocli match data/ -o out --scheduler tcp://127.0.0.1:8786 --retries 2
     """
     from ..errors import ConfigError
     from ..io.pairs import discover_pairs
-    from ..jobs.executors import run_batch
     from ..jobs.match import match_item, plan_items
     from ..match.config import build_config
-    from ..runinfo import RunRecord, versions
+    from ..runinfo import versions
 
     verbosity = options.verbosity(ctx)
     if split_strips and not scheduler:
@@ -60,22 +68,23 @@ def match_cmd(ctx, inputs, outdir, config_files, sets, ndisp, min_disp, png16_sc
     pairs, problems = discover_pairs(inputs)
     items = plan_items(pairs, outdir, config=effective, ndisp=ndisp, min_disp=min_disp, png16_scale=png16_scale,
                        npy=npy, viz=viz, confidence=confidence, right=right, keep_invalid=keep_invalid,
-                       split_strips=bool(scheduler) and split_strips is not False,
+                       split_strips=bool(scheduler) and split_strips is not False, require_aligned=require_aligned,
                        record_info={"versions": versions(), "config_sources": config.sources})
     if dry_run:
         print_json({"command": "match", "config": effective, "config_sources": config.sources,
                     "unpaired": problems,
                     "items": [{"name": i.name, "inputs": i.inputs, "outputs": i.outputs,
-                               "min_disp": i.options["min_disp"], "ndisp": i.options["ndisp"]} for i in items]})
+                               "min_disp": i.options["min_disp"], "ndisp": i.options["ndisp"] or "auto",
+                               "range_source": i.options["range_source"], **({"error": i.error} if i.error else {})}
+                              for i in items]})
         return
     if verbosity >= 1:
         _report_memory(items, config)
     for problem in problems:
         click.echo(f"Warning: {problem}", err=True)
-    result = run_batch(items, match_item, jobs=jobs, overwrite=overwrite, skip_existing=skip_existing,
-                       desc="match", verbose_errors=verbosity >= 2, scheduler=scheduler, retries=retries)
-    record = RunRecord("match", argv(), effective)
-    code = finish_batch(result, record, Path(outdir) / "run.json", verbosity, unpaired_failures(problems))
+    code, _ = run_batch_command("match", items, match_item, outdir=Path(outdir), config=effective, verbosity=verbosity,
+                                extra_failures=unpaired_failures(problems), jobs=jobs, overwrite=overwrite,
+                                skip_existing=skip_existing, scheduler=scheduler, retries=retries)
     ctx.exit(code)
 
 
@@ -84,11 +93,16 @@ def _report_memory(items, config) -> None:
     from ..match.pipeline import GIB, estimate_memory, plan_strips
 
     for item in items:
+        if item.error:
+            continue  # reported as the item's failure
         try:
             h, w = read_image(item.inputs["left"], gray=True).shape[:2]
         except Exception:  # noqa: BLE001 - reported properly when the item runs
             continue
         nd = item.options["ndisp"]
+        if nd is None:
+            click.echo(f"{item.name}: {w}x{h}, disparity range estimated when the pair runs", err=True)
+            continue
         whole = estimate_memory(config, h, w, nd) / GIB
         try:
             strips = plan_strips(config, h, w, nd)

@@ -2,7 +2,39 @@
 
 from __future__ import annotations
 
+import math
+
 import click
+
+
+class Finite(click.FloatRange):
+    """A number that must be finite (NaN passes every range check, and inf is no setting),
+    optionally within a range: ``Finite(min=0, min_open=True)``."""
+
+    def convert(self, value, param, ctx):
+        number = super().convert(value, param, ctx)
+        if not math.isfinite(number):
+            self.fail(f"{value!r} is not a finite number", param, ctx)
+        return number
+
+class _NdispType(click.ParamType):
+    """A number of disparities in [1, 100000], or ``auto`` (estimate the range from the images)."""
+
+    name = "N|auto"
+
+    def convert(self, value, param, ctx):
+        if value is None or isinstance(value, int) or value == "auto":
+            return value
+        try:
+            number = int(str(value))
+        except ValueError:
+            self.fail(f"{value!r} is neither a whole number nor 'auto'", param, ctx)
+        if not 1 <= number <= 100000:
+            self.fail(f"{number} is not in the range 1<=x<=100000", param, ctx)
+        return number
+
+
+NDISP = _NdispType()
 
 overwrite = click.option("--overwrite", is_flag=True, help="Replace existing outputs.")
 skip_existing = click.option("--skip-existing", is_flag=True, help="Skip items whose outputs already exist (resume).")

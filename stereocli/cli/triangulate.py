@@ -7,7 +7,7 @@ from pathlib import Path
 import click
 
 from . import options
-from .common import argv, finish_batch, print_json, unpaired_failures
+from .common import print_json, run_batch_command, unpaired_failures
 from ..errors import ConfigError as usage_error  # one-line message, exit 2
 
 
@@ -21,12 +21,12 @@ from ..errors import ConfigError as usage_error  # one-line message, exit 2
 @click.option("--scenes", type=click.Path(file_okay=False),
               help="Folder of scene folders (rectify output) to find <name>/calib.txt and im0.png in.")
 @click.option("--confidence", type=click.Path(dir_okay=False), help="Confidence map (PFM/npy) stored per point.")
-@click.option("--scale", type=click.FloatRange(min=0, min_open=True),
+@click.option("--scale", type=options.Finite(min=0, min_open=True),
               help="Disparity scale of integer PNG inputs (d = value / scale; 16-bit default 256).")
 @click.option("--units", type=click.Choice(["m", "cm", "mm"]), help="Depth unit (default: the calibration's).")
 @click.option("--use-q", is_flag=True, help="Take f, cx, cy, B, doffs from the Q matrix instead of P1/P2.")
-@click.option("--min-depth", type=float, help="Drop points nearer than this (depth units).")
-@click.option("--max-depth", type=float, help="Drop points farther than this (depth units).")
+@click.option("--min-depth", type=options.Finite(), help="Drop points nearer than this (depth units).")
+@click.option("--max-depth", type=options.Finite(), help="Drop points farther than this (depth units).")
 @click.option("--stride", type=click.IntRange(1, 1000), default=1, show_default=True,
               help="Keep every STRIDE-th pixel in x and y (point cloud decimation).")
 @click.option("--ascii", "ascii_ply", is_flag=True, help="ASCII PLY instead of binary little endian.")
@@ -56,9 +56,7 @@ def triangulate_cmd(ctx, inputs, output, calib_path, image, scenes, confidence, 
       stereocli triangulate out/ --scenes rect/ -o clouds/ --units m --max-depth 5 --summary
       stereocli triangulate disp.png --scale 256 --calib rig.yml --image left.png -o cloud.ply --ascii
     """
-    from ..jobs.executors import run_batch
     from ..jobs.triangulate import plan_items, triangulate_item
-    from ..runinfo import RunRecord
 
     if min_depth is not None and max_depth is not None and min_depth >= max_depth:
         raise usage_error(f"--min-depth {min_depth} must be below --max-depth {max_depth}")
@@ -77,14 +75,12 @@ def triangulate_cmd(ctx, inputs, output, calib_path, image, scenes, confidence, 
         return
     for problem in problems:
         click.echo(f"Warning: {problem}", err=True)
-    result = run_batch(items, triangulate_item, jobs=jobs, overwrite=overwrite, skip_existing=skip_existing,
-                       desc="triangulate", verbose_errors=verbosity >= 2,
-                       scheduler=scheduler, retries=retries)
     out = Path(output)
     single = out.suffix.lower() in (".ply", ".npy")
-    record = RunRecord("triangulate", argv(), opts)
-    code = finish_batch(result, record, None if single else out / "run.json", verbosity,
-                        unpaired_failures(problems))
+    code, result = run_batch_command("triangulate", items, triangulate_item, outdir=None if single else out,
+                                     config=opts, verbosity=verbosity, extra_failures=unpaired_failures(problems),
+                                     jobs=jobs, overwrite=overwrite, skip_existing=skip_existing,
+                                     scheduler=scheduler, retries=retries)
     if fmt == "json":
         print_json({r.name: r.details for r in result.results if r.status == "ok"})
     elif verbosity >= 0:

@@ -80,10 +80,10 @@ class EvalOptions:
             raise ConfigError(f"unknown dataset {self.dataset!r}; choose from {', '.join(ds.DATASETS)}")
         if not self.thresholds or any(not np.isfinite(t) or t < 0 for t in self.thresholds):
             raise ConfigError(f"thresholds must be non-negative numbers, got {self.thresholds!r}")
-        if self.gt_scale is not None and not self.gt_scale > 0:
-            raise ConfigError(f"gt scale must be positive, got {self.gt_scale!r}")
-        if self.ndisp is not None and not self.ndisp > 0:
-            raise ConfigError(f"ndisp must be positive, got {self.ndisp!r}")
+        if self.gt_scale is not None and not 0 < self.gt_scale < np.inf:
+            raise ConfigError(f"gt scale must be a positive finite number, got {self.gt_scale!r}")
+        if self.ndisp is not None and not 0 < self.ndisp < np.inf:
+            raise ConfigError(f"ndisp must be a positive finite number, got {self.ndisp!r}")
 
     def scene_resolution(self) -> str | None:
         return None if self.resolution == "auto" else self.resolution
@@ -259,6 +259,8 @@ def evaluate_pair(
         gt_scene = loader(p, dataset=options.dataset, gt_scale=options.gt_scale,
                           resolution=options.scene_resolution())
     scene = gt_scene
+    if not np.isfinite(scene.gt).any():
+        raise DataError(f"{scene.gt_path}: no pixel of the ground truth is known (all unknown/inf); nothing to score")
     est, label = _read_estimate(estimate, scene)
     metrics: dict[str, dict[str, Any] | None] = {}
     arrays: dict[str, Any] = {}

@@ -288,12 +288,17 @@ def write_ros(path: str | os.PathLike, calib: StereoCalibration) -> tuple[Path, 
 def _yaml_docs(path: Path) -> list:
     import yaml
 
+    from ..config import check_yaml_limits
+
     try:
         text = path.read_text()
     except (OSError, UnicodeDecodeError) as exc:
         raise DataError(f"{path}: cannot read ({exc})") from None
     try:
+        check_yaml_limits(text, str(path))
         return [d for d in yaml.safe_load_all(text) if d is not None]
+    except ConfigError as exc:  # a hostile file is bad data here, not a bad option
+        raise DataError(str(exc)) from None
     except yaml.YAMLError as exc:
         line = getattr(getattr(exc, "problem_mark", None), "line", None)
         where = f" near line {line + 1}" if line is not None else ""
@@ -453,18 +458,26 @@ def load_calibration(path: str | os.PathLike) -> StereoCalibration:
     path = Path(path)
     fmt = detect_format(path)
     if fmt == "middlebury":
-        return from_middlebury(read_calib_txt(path))
+        return _finite(from_middlebury(read_calib_txt(path)), path)
     if fmt == "ros":
-        return read_ros(path)
+        return _finite(read_ros(path), path)
     if fmt == "kalibr":
         docs = _yaml_docs(path)
         if not docs or not isinstance(docs[0], dict):
             raise DataError(f"{path}: empty Kalibr camchain")
-        return _from_kalibr(docs[0], path)
+        return _finite(_from_kalibr(docs[0], path), path)
     calib = read_opencv(path)
     for key in ("K1", "K2"):
         if not np.all(np.isfinite(getattr(calib, key))) or getattr(calib, key)[0, 0] <= 0:
             raise DataError(f"{path}: {key} is not a valid camera matrix")
+    return _finite(calib, path)
+
+
+def _finite(calib: StereoCalibration, path: Path) -> StereoCalibration:
+    """``calib``, or a DataError naming the first matrix holding NaN or inf."""
+    for key, value in vars(calib).items():
+        if isinstance(value, np.ndarray) and value.dtype.kind in "fc" and not np.isfinite(value).all():
+            raise DataError(f"{path}: {key} holds NaN or infinite values")
     return calib
 
 

@@ -55,18 +55,28 @@ def write_image(path: str | os.PathLike, image: np.ndarray) -> None:
     write_bytes(path, buf.tobytes())
 
 
-def write_disparity_png16(path: str | os.PathLike, disparity: np.ndarray, scale: float = 256.0) -> None:
+def write_disparity_png16(path: str | os.PathLike, disparity: np.ndarray, scale: float = 256.0) -> int:
     """Write disparity as uint16 PNG holding ``round(d * scale)``; 0 = invalid (KITTI style).
 
-    Negative or too-large disparities cannot be represented and are written as invalid.
+    Disparities outside ``[1, 65535] / scale`` (negative, too large, or rounding to 0) cannot be
+    represented and are written as invalid; returns how many valid pixels that was. Raises
+    :class:`DataError` (writing nothing) when ``scale`` is not a positive finite number, or when
+    no valid disparity at all can be represented (the file would hold only "invalid").
     """
+    if not 0 < scale < np.inf:
+        raise DataError(f"{path}: PNG disparity scale must be a positive finite number, got {scale!r}")
     d = np.asarray(disparity, dtype=np.float64)
     finite = np.isfinite(d)
     value = np.zeros(d.shape, dtype=np.uint16)
     scaled = np.round(np.where(finite, d, 0.0) * scale)
     ok = finite & (scaled >= 1) & (scaled <= 65535)
+    lost = int(finite.sum() - ok.sum())
+    if finite.any() and not ok.any():
+        raise DataError(f"{path}: no valid disparity fits round(d * {scale:g}) in 1..65535 (they span "
+                        f"{d[finite].min():.4g}..{d[finite].max():.4g} px); choose another scale")
     value[ok] = scaled[ok].astype(np.uint16)
     write_image(path, value)
+    return lost
 
 
 def read_disparity(path: str | os.PathLike, *, scale: float | None = None) -> np.ndarray:
@@ -109,8 +119,9 @@ def read_disparity(path: str | os.PathLike, *, scale: float | None = None) -> np
     return np.ascontiguousarray(disp, dtype=np.float32)
 
 
-def write_disparity(path: str | os.PathLike, disparity: np.ndarray, *, png_scale: float = 256.0) -> None:
-    """Write disparity by extension: ``.pfm`` (float32, +inf invalid), ``.npy``, ``.png`` (uint16, scaled)."""
+def write_disparity(path: str | os.PathLike, disparity: np.ndarray, *, png_scale: float = 256.0) -> int:
+    """Write disparity by extension: ``.pfm`` (float32, +inf invalid), ``.npy``, ``.png`` (uint16,
+    scaled); returns the number of valid pixels the format could not hold (PNG only)."""
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix == ".pfm":
@@ -120,6 +131,7 @@ def write_disparity(path: str | os.PathLike, disparity: np.ndarray, *, png_scale
             with open(tmp, "wb") as fh:
                 np.save(fh, np.asarray(disparity, dtype=np.float32))
     elif suffix == ".png":
-        write_disparity_png16(path, disparity, png_scale)
+        return write_disparity_png16(path, disparity, png_scale)
     else:
         raise DataError(f"{path}: unknown disparity output format {suffix!r}")
+    return 0

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 import re
 from dataclasses import dataclass, field
@@ -40,7 +41,7 @@ class MiddleburyCalib:
 
 def _matrix(text: str, path: Path, key: str) -> np.ndarray:
     values = [float(v) for v in _NUMBER.findall(text)]
-    if len(values) != 9:
+    if len(values) != 9 or not all(map(math.isfinite, values)):
         raise DataError(f"{path}: {key} must be a 3x3 matrix like [f 0 cx; 0 f cy; 0 0 1]")
     return np.array(values, dtype=np.float64).reshape(3, 3)
 
@@ -67,9 +68,12 @@ def read_calib_txt(path: str | os.PathLike) -> MiddleburyCalib:
             return default
         raw = entries.pop(key)
         try:
-            return cast(float(raw))
+            value = float(raw)
         except ValueError:
             raise DataError(f"{path}: {key}={raw!r} is not a number") from None
+        if not math.isfinite(value):
+            raise DataError(f"{path}: {key}={raw!r} is not a finite number")
+        return cast(value)
 
     return MiddleburyCalib(
         cam0=cam0,

@@ -2,7 +2,9 @@
 
 Accepted forms (mixed freely):
 
-* two image files: ``left.png right.png`` (named by the left file's stem);
+* two image files: ``left.png right.png`` (named by the left file's stem); two files of a scene
+  folder named as a scene pair (``DIR/im0.png DIR/im1.png``) are that scene: named by the folder,
+  with its ``calib.txt`` and valid masks;
 * a scene folder holding a known left/right pair (``im0/im1`` Middlebury 2014, ``im2/im6``
   2001/2003, ``im3/im4`` Tsukuba copy, ``left/right``), with optional ``calib.txt`` and valid
   masks ``valid0.png``/``valid1.png`` written by ``rectify`` (named by the folder);
@@ -61,18 +63,32 @@ def scene_pair(folder: Path) -> StereoInput | None:
     images = _by_stem(folder)
     for left, right in SCENE_PAIRS:
         if left in images and right in images:
-            calib = folder / "calib.txt"
-            v0, v1 = folder / "valid0.png", folder / "valid1.png"
-            return StereoInput(
-                name=folder.name,
-                left=str(images[left]),
-                right=str(images[right]),
-                calib=str(calib) if calib.is_file() else None,
-                left_valid=str(v0) if v0.is_file() else None,
-                right_valid=str(v1) if v1.is_file() else None,
-                folder=str(folder),
-            )
+            return _scene_input(folder, images[left], images[right])
     return None
+
+
+def _scene_input(folder: Path, left: Path, right: Path) -> StereoInput:
+    """The pair ``left``/``right`` of scene folder ``folder``, with its calib.txt and valid masks."""
+    calib = folder / "calib.txt"
+    v0, v1 = folder / "valid0.png", folder / "valid1.png"
+    return StereoInput(
+        name=folder.resolve().name,
+        left=str(left),
+        right=str(right),
+        calib=str(calib) if calib.is_file() else None,
+        left_valid=str(v0) if v0.is_file() else None,
+        right_valid=str(v1) if v1.is_file() else None,
+        folder=str(folder),
+    )
+
+
+def file_pair(left: Path, right: Path) -> StereoInput:
+    """Two image files given on the command line: the scene they belong to when they sit in one
+    folder under a scene pair's names (``im0``/``im1``, ``left``/``right``, ...), else a pair
+    named by the left file's stem."""
+    if left.parent.resolve() == right.parent.resolve() and (left.stem, right.stem) in SCENE_PAIRS:
+        return _scene_input(left.parent, left, right)
+    return StereoInput(name=left.stem, left=str(left), right=str(right))
 
 
 def _pair_names() -> str:
@@ -198,8 +214,7 @@ def discover_pairs(inputs: list[str] | tuple[str, ...], *,
     if files:
         if len(files) % 2:
             raise DataError(f"{files[-1]}: image files must be given in left/right pairs")
-        for left, right in zip(files[0::2], files[1::2]):
-            pairs.append(StereoInput(name=left.stem, left=str(left), right=str(right)))
+        pairs += [file_pair(left, right) for left, right in zip(files[0::2], files[1::2])]
     if len(folders) == 2 and not any(scene_pair(f) or _has_subfolders(f) for f in folders):
         # Two plain folders of images: left/ and right/.
         found, bad = pair_folders(folders[0], folders[1])
@@ -235,7 +250,7 @@ def _discover_folder(folder: Path) -> tuple[list[StereoInput], list[str]]:
     if left.is_dir() and right.is_dir():
         return pair_folders(left, right)
     pairs, problems = [], []
-    subdirs = sorted(p for p in folder.iterdir() if p.is_dir())
+    subdirs = sorted(p for p in folder.iterdir() if p.is_dir() and not p.name.startswith("."))  # not staging folders
     for sub in subdirs:
         scene = scene_pair(sub)
         if scene:

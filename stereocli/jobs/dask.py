@@ -17,6 +17,13 @@ in input order. Two kinds of retry:
 * an item that *fails* (the item function raised, or the scheduler gave up on it) is submitted
   again, up to ``retries`` more times.
 
+Failures of the cluster itself are bounded: an address is probed (is a Dask scheduler
+answering?) within :data:`CONNECT_SECONDS`; a scheduler lost mid-batch (the client cannot reach
+it for :data:`LOST_SECONDS`) fails the items that had not finished, keeping those that had. Each
+task checks that the worker sees the item's paths (workers need a shared filesystem);
+``attempts`` counts every run, including Dask's own re-runs after a worker died.
+Dask's log lines go to the captured third-party output (:func:`stereocli.process.noise_stream`).
+
 Dask is an optional dependency (``pip install "stereocli[dask]"``); this module imports it
 lazily and turns its absence into a :class:`~stereocli.errors.ConfigError`.
 """
@@ -28,6 +35,9 @@ import contextlib
 import logging
 import os
 import re
+import signal
+import time
+from pathlib import Path
 from typing import Any, Callable, Iterator, Sequence
 
 from ..errors import ConfigError
@@ -35,7 +45,10 @@ from .items import ItemResult, WorkItem, prepare_worker, run_one
 
 INSTALL_HINT = 'pip install "stereocli[dask]"'
 WORKER_WAIT_SECONDS = 60  # a remote scheduler with no workers would otherwise wait forever
-_ADDRESS = re.compile(r"^(?:[a-z][a-z0-9+.-]*://)?[^\s/:]+:\d+$")
+CONNECT_SECONDS = 10  # probing an address: a Dask scheduler answers at once
+LOST_SECONDS = 10  # a scheduler unreachable this long is lost: the unfinished items fail
+SHARED_FS_HINT = "Dask workers need a shared filesystem with the same paths"
+_ADDRESS = re.compile(r"^(?:([a-z][a-z0-9+.-]*)://)?[^\s/:]+:\d+$")
 
 
 def require_distributed():
@@ -48,12 +61,62 @@ def require_distributed():
 
 
 def check_scheduler(scheduler: str | None) -> None:
-    """Validate a ``--scheduler`` value (``local`` or ``[proto://]host:port``) and that Dask is present."""
+    """Validate a ``--scheduler`` value (``local`` or ``[proto://]host:port`` with a protocol Dask
+    knows) and that Dask is present."""
     if not scheduler:
         raise ConfigError("the dask executor needs --scheduler tcp://host:port (or --scheduler local)")
-    if scheduler != "local" and not _ADDRESS.match(scheduler):
+    m = _ADDRESS.match(scheduler)
+    if scheduler != "local" and not m:
         raise ConfigError(f"--scheduler {scheduler}: expected tcp://host:port (e.g. tcp://127.0.0.1:8786) or 'local'")
     require_distributed()
+    if m and m.group(1):
+        from distributed.comm.registry import backends
+
+        if m.group(1) not in backends:
+            raise ConfigError(f"--scheduler {scheduler}: Dask has no {m.group(1)!r} protocol; "
+                              f"use one of {', '.join(sorted(backends))} (e.g. tcp://127.0.0.1:8786)")
+
+
+def probe_scheduler(scheduler: str, timeout: float | None = None) -> None:
+    """Raise :class:`ConfigError` unless a Dask scheduler answers at ``scheduler`` within
+    ``timeout`` seconds (default :data:`CONNECT_SECONDS`; a closed port, an HTTP server or a
+    silent peer all fail in time)."""
+    from distributed.comm import connect as comm_connect
+    from distributed.security import Security
+
+    timeout = CONNECT_SECONDS if timeout is None else timeout
+
+    async def identify() -> dict:
+        args = Security().get_connection_args("client")
+        comm = await comm_connect(scheduler, timeout=timeout, **args)
+        try:
+            await comm.write({"op": "identity", "reply": True})
+            return await comm.read()
+        finally:
+            comm.abort()
+
+    async def bounded() -> dict:
+        return await asyncio.wait_for(identify(), timeout)
+
+    try:
+        reply = asyncio.run(bounded())
+    except (asyncio.TimeoutError, TimeoutError):
+        raise ConfigError(f"--scheduler {scheduler}: no Dask scheduler answered within {timeout:g} s") from None
+    except Exception as exc:  # noqa: BLE001 - refused, reset, garbled handshake: not a scheduler
+        raise ConfigError(f"--scheduler {scheduler}: not a reachable Dask scheduler "
+                          f"({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else 'no detail'})") from None
+    if not isinstance(reply, dict) or reply.get("type") != "Scheduler":
+        raise ConfigError(f"--scheduler {scheduler}: the peer is not a Dask scheduler")
+
+
+def quiet_dask_logs() -> None:
+    """Send the ``distributed`` loggers' console output to the captured third-party output."""
+    from ..process import noise_stream
+
+    for name in ["distributed", *[n for n in logging.root.manager.loggerDict if n.startswith("distributed.")]]:
+        for handler in logging.getLogger(name).handlers:
+            if isinstance(handler, logging.StreamHandler) and not isinstance(handler, logging.FileHandler):
+                handler.setStream(noise_stream())
 
 
 def local_cluster_shape(jobs: int | None) -> tuple[int, int]:
@@ -70,11 +133,13 @@ def local_cluster_shape(jobs: int | None) -> tuple[int, int]:
 def connect(scheduler: str, jobs: int | None = None) -> Iterator[Any]:
     """A :class:`distributed.Client` for ``scheduler``; a started LocalCluster for ``local``.
 
-    Everything started here is closed on exit; a remote cluster is left running.
+    Everything started here is closed on exit (within seconds, even when the scheduler is
+    gone); a remote cluster is left running.
     """
     check_scheduler(scheduler)
     distributed = require_distributed()
-    cluster = None
+    quiet_dask_logs()
+    cluster, local_pids = None, {}
     try:
         if scheduler == "local":
             n_workers, threads = local_cluster_shape(jobs)
@@ -84,78 +149,159 @@ def connect(scheduler: str, jobs: int | None = None) -> Iterator[Any]:
             cluster = distributed.LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
                                                dashboard_address=None, silence_logs=logging.ERROR, env=env)
             client = distributed.Client(cluster, set_as_default=False)
+            local_pids = client.run(os.getpid)
         else:
+            probe_scheduler(scheduler)
             try:
-                client = distributed.Client(scheduler, timeout="10s", set_as_default=False)
+                client = distributed.Client(scheduler, timeout=f"{CONNECT_SECONDS}s", set_as_default=False)
             except (OSError, asyncio.TimeoutError) as exc:
                 raise ConfigError(f"--scheduler {scheduler}: cannot connect ({exc})") from None
             try:
                 client.wait_for_workers(1, timeout=WORKER_WAIT_SECONDS)
             except (OSError, asyncio.TimeoutError, TimeoutError):
-                client.close()
+                _close(client)
                 raise ConfigError(f"--scheduler {scheduler}: no worker joined within {WORKER_WAIT_SECONDS} s "
                                   f"(start some with: dask worker {scheduler})") from None
         try:
             yield client
+        except BaseException:
+            # Interrupted or failed: stop the local workers now (a graceful close waits for
+            # their running items); their staged outputs are removed by the caller.
+            for pid in local_pids.values():
+                with contextlib.suppress(OSError):
+                    os.kill(pid, signal.SIGKILL)
+            raise
         finally:
-            client.close()
+            _close(client)
     finally:
         if cluster is not None:
-            cluster.close()
+            with contextlib.suppress(Exception):
+                cluster.close(timeout=5)
+
+
+def _close(client) -> None:
+    with contextlib.suppress(Exception):
+        client.close(timeout=2)
+
+
+def _missing_path(item: WorkItem) -> str | None:
+    """The first of ``item``'s inputs, or its output folder's parent, this process cannot see."""
+    for path in item.inputs.values():
+        if not os.path.exists(path):
+            return path
+    if item.folder and not Path(item.folder).parent.is_dir():
+        return str(Path(item.folder).parent)
+    return None
 
 
 def _run_on_worker(item_fn: Callable, item: WorkItem, verbose_errors: bool) -> ItemResult:
-    """Task body: run one item with the batch's error handling; note which worker ran it."""
-    prepare_worker()
-    result = run_one(item_fn, item, verbose_errors)
-    try:
-        from distributed import get_worker
+    """Task body: check the paths are visible here, run one item with the batch's error
+    handling; note which worker ran it."""
+    from distributed import get_worker
 
-        result.details = {**result.details, "worker": get_worker().address}
-    except (ImportError, ValueError):
-        pass
+    worker = get_worker()
+    prepare_worker()
+    missing = _missing_path(item)
+    if missing is not None:
+        result = ItemResult.failure(item, f"{missing}: not found on worker {worker.address} ({SHARED_FS_HINT})")
+    else:
+        result = run_one(item_fn, item, verbose_errors)
+    result.details = {**result.details, "worker": worker.address}
     return result
 
 
-def run_dask(items: Sequence[WorkItem], item_fn: Callable, verbose_errors: bool, bar, scheduler: str | None,
-             retries: int, jobs: int | None = None) -> list[ItemResult]:
+def run_dask(items: Sequence[WorkItem], item_fn: Callable, verbose_errors: bool, scheduler: str | None,
+             retries: int, jobs: int | None = None,
+             record: Callable[[int, ItemResult, bool], None] | None = None) -> list[ItemResult]:
     """Run ``item_fn`` over ``items`` on a Dask cluster; per-item results in input order.
 
-    Failed items are resubmitted up to ``retries`` times (``attempts`` counts submissions; a
-    task re-run by the scheduler after its worker died is one attempt). ``bar`` advances once
-    per item, when its final result is known.
+    Failed items are resubmitted up to ``retries`` times. ``attempts`` counts the runs each item
+    started (a task re-run by the scheduler after its worker died counts again). ``record(k,
+    result, final)`` is called as each outcome is known. A lost scheduler fails the unfinished
+    items; an interrupt cancels the outstanding tasks and propagates.
     """
-    distributed = require_distributed()
-    items = list(items)
-    results: list[ItemResult | None] = [None] * len(items)
+    require_distributed()
     if not items:
         return []
     with connect(scheduler, jobs) as client:
-        attempts = [0] * len(items)
-        index: dict[Any, int] = {}
+        batch = _DaskBatch(client, list(items), item_fn, verbose_errors, retries,
+                           record or (lambda k, res, final: None))
+        try:
+            batch.run()
+        except BaseException:
+            with contextlib.suppress(Exception):
+                client.cancel(list(batch.pending.futures), force=True)
+            raise
+    return batch.results  # type: ignore[return-value]
 
-        def submit(k: int):
-            attempts[k] += 1
-            future = client.submit(_run_on_worker, item_fn, items[k], verbose_errors, pure=False)
-            index[future.key] = k
-            return future
 
-        pending = distributed.as_completed([submit(k) for k in range(len(items))], loop=client.loop)
-        for future in pending:
-            k = index.pop(future.key)
-            try:
-                res = future.result()
-            except (Exception, asyncio.CancelledError) as exc:  # noqa: BLE001 - lost task fails its item only
-                lost = f"{items[k].name}: lost on the cluster ({type(exc).__name__}: {exc})"
-                res = ItemResult.failure(items[k], lost)
-            future.release()
-            res.attempts = attempts[k]
-            if res.status == "failed" and attempts[k] <= retries:
-                pending.add(submit(k))
+class _DaskBatch:
+    """The items of one :func:`run_dask` call on a connected client: submissions, outcomes."""
+
+    def __init__(self, client, items: list[WorkItem], item_fn: Callable, verbose_errors: bool, retries: int,
+                 record: Callable[[int, ItemResult, bool], None]) -> None:
+        import distributed
+
+        self.client, self.items, self.item_fn, self.verbose_errors = client, items, item_fn, verbose_errors
+        self.retries, self.record = retries, record
+        self.results: list[ItemResult | None] = [None] * len(items)
+        self.submitted = [0] * len(items)
+        self.index: dict[Any, int] = {}  # key of each outstanding task -> item
+        self.pending = distributed.as_completed([self.submit(k) for k in range(len(items))], loop=client.loop)
+
+    def submit(self, k: int):
+        self.submitted[k] += 1
+        future = self.client.submit(_run_on_worker, self.item_fn, self.items[k], self.verbose_errors, pure=False)
+        self.index[future.key] = k
+        return future
+
+    def run(self) -> None:
+        """Take finished tasks until every item has its final result or the scheduler is lost
+        (then the unfinished items fail)."""
+        lost_since = None
+        while self.index:
+            done = self.pending.next_batch(block=False)
+            if done:
+                if not self.take(done):
+                    break
                 continue
-            results[k] = res
-            bar.update(1)
-    return results  # type: ignore[return-value]
+            if self.client.status == "running":
+                lost_since = None
+            else:
+                lost_since = lost_since or time.monotonic()
+                if self.client.status in ("closing", "closed") or time.monotonic() - lost_since > LOST_SECONDS:
+                    break
+            time.sleep(0.05)
+        for k in sorted(set(self.index.values())):
+            res = ItemResult.failure(self.items[k], "the Dask scheduler was lost before this item finished; "
+                                                    "run again with --skip-existing to resume")
+            res.attempts = self.submitted[k]
+            self.results[k] = res
+            self.record(k, res, True)
+
+    def take(self, futures) -> bool:
+        """Record the outcomes of finished ``futures``, resubmitting failures that have retries
+        left; False when they show that the scheduler is gone."""
+        for future in futures:
+            k = self.index[future.key]
+            try:
+                res = future.result(timeout=LOST_SECONDS)
+            except (Exception, asyncio.CancelledError) as exc:  # noqa: BLE001 - lost task fails its item only
+                if self.client.status != "running" or "connection-lost" in str(exc):
+                    return False
+                detail = str(exc).splitlines()[0] if str(exc) else "no detail"
+                res = ItemResult.failure(self.items[k], f"lost on the cluster ({type(exc).__name__}: {detail})")
+            del self.index[future.key]
+            future.release()
+            # Submissions, plus the runs Dask started again after a worker died (run_one counts
+            # the staging folders those left).
+            res.attempts = self.submitted[k] + max(0, res.attempts - 1)
+            retry = res.status == "failed" and self.submitted[k] <= self.retries and self.client.status == "running"
+            self.results[k] = res
+            self.record(k, res, not retry)
+            if retry:
+                self.pending.add(self.submit(k))
+        return True
 
 
 # --- tasks inside a task ------------------------------------------------------------------

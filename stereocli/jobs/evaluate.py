@@ -11,6 +11,7 @@ from __future__ import annotations
 import os
 from typing import Any, Sequence
 
+from ..errors import Interrupted
 from ..evaluate.api import EvalOptions, EvalReport, SceneScorer, SceneTask, score_scene
 from ..evaluate.api import evaluate as evaluate_inputs
 from .executors import run_batch
@@ -46,7 +47,11 @@ def batch_scorer(*, jobs: int = 1, scheduler: str | None = None, retries: int = 
     def score(tasks: Sequence[SceneTask], options: EvalOptions) -> list[dict[str, Any]]:
         batch = run_batch(plan_items(tasks, options), eval_item, jobs=jobs, scheduler=scheduler, retries=retries,
                           executor=executor, progress=progress, desc="eval", verbose_errors=verbose_errors)
-        return [r.details if r.status == "ok" else {"failure": r.message or "failed"} for r in batch.results]
+        if batch.interrupted:
+            raise Interrupted(batch.interrupted)
+        # The report names each scene beside its message already.
+        return [r.details if r.status == "ok" else {"failure": r.message.removeprefix(f"{r.name}: ") or "failed"}
+                for r in batch.results]
 
     return score
 

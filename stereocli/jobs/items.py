@@ -1,44 +1,86 @@
 """Work items and their outcomes, the per-item runner, and the output policy of a batch.
 
-Item functions take one :class:`WorkItem`, write its outputs atomically
-(:mod:`stereocli.io.atomic`) and return a JSON-able dict of details for the run record. They
-must be importable top-level functions: process pools and Dask pickle them by name.
+Item functions take one :class:`WorkItem`, write its outputs (:mod:`stereocli.io.atomic`) and
+return a JSON-able dict of details for the run record. They must be importable top-level
+functions: process pools and Dask pickle them by name.
+
+An item's outputs are committed together (:func:`run_one`): the item function writes them into
+a fresh hidden staging folder ``.stereocli-tmp/<name>.<random>.<run>.stage`` beside the item's
+folder, and only when it succeeds are they moved into place, with a completion marker
+``.stereocli-<command>.done`` listing them. A folder that holds nothing but this command's
+outputs is replaced whole by one rename, so a reader (or a kill) sees the old set, no folder, or
+the new set; a folder shared with other files (e.g. ``match`` writing beside ``rectify``'s
+images) gets its files replaced one by one, marker removed first and written last.
+``--skip-existing`` counts an item done only when its marker and every output exist.
 """
 
 from __future__ import annotations
 
 import glob
+import json
+import os
+import shutil
+import tempfile
 import time
 import traceback
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable
 
-from ..errors import EXIT_OK, EXIT_PARTIAL, StereoError, check_outputs_free
+from ..errors import EXIT_DATA, EXIT_OK, EXIT_PARTIAL, EXIT_USAGE, StereoError, check_outputs_free
+from ..io.atomic import plain_mode, write_text
 
 RESUME_HINT = "use --overwrite to replace or --skip-existing to resume"
+#: Hidden folder (beside the items' folders) holding outputs being written.
+STAGING = ".stereocli-tmp"
 
 
 @dataclass
 class WorkItem:
-    """One unit of work: a name, input paths, output paths and per-item options."""
+    """One unit of work: a name, input paths, output paths and per-item options.
+
+    ``folder`` is the item's own output folder (its outputs are committed together and marked
+    complete with ``.stereocli-<command>.done``, which records ``run_id``); ``error`` is set when
+    planning the item failed: it fails with that message and exit code ``error_code``, without
+    running.
+    """
 
     name: str
     inputs: dict[str, str]
     outputs: dict[str, str]
     options: dict[str, Any] = field(default_factory=dict)
+    folder: str = ""
+    command: str = ""
+    error: str = ""
+    error_code: int = EXIT_DATA
+    run_id: str = ""
 
     def existing_outputs(self) -> list[str]:
         return [p for p in self.outputs.values() if Path(p).exists()]
 
     def as_dict(self) -> dict[str, Any]:
         """``name``, ``inputs``, ``outputs``, ``options`` (the ``--dry-run`` plan of one item)."""
-        return asdict(self)
+        out = {"name": self.name, "inputs": self.inputs, "outputs": self.outputs, "options": self.options}
+        if self.error:
+            out["error"] = self.error
+        return out
+
+    def absolute(self) -> "WorkItem":
+        """The same item with absolute input and output paths (workers may run elsewhere)."""
+        return replace(self, inputs={k: os.path.abspath(v) for k, v in self.inputs.items()},
+                       outputs={k: os.path.abspath(v) for k, v in self.outputs.items()},
+                       folder=os.path.abspath(self.folder) if self.folder else "")
+
+    @property
+    def marker(self) -> Path | None:
+        """The completion marker of an item with a folder."""
+        return Path(self.folder) / f".stereocli-{self.command or 'batch'}.done" if self.folder else None
 
 
 @dataclass
 class ItemResult:
-    """Outcome of one item: ``status`` is ``ok``, ``skipped`` or ``failed`` (with ``message``)."""
+    """Outcome of one item: ``status`` is ``ok``, ``skipped`` or ``failed`` (with ``message`` and
+    the ``exit_code`` its error maps to: 1 data/runtime, 2 usage/configuration)."""
 
     name: str
     status: str
@@ -48,21 +90,26 @@ class ItemResult:
     inputs: dict[str, str] = field(default_factory=dict)
     outputs: dict[str, str] = field(default_factory=dict)
     attempts: int = 0
+    exit_code: int = EXIT_OK
 
     def as_dict(self) -> dict:
         return asdict(self)
 
     @classmethod
-    def failure(cls, item: WorkItem, message: str) -> "ItemResult":
+    def failure(cls, item: WorkItem, message: str, exit_code: int = EXIT_DATA) -> "ItemResult":
         """A failed outcome for ``item`` that never produced a result (dead worker, lost task)."""
-        return cls(item.name, "failed", message=message, inputs=item.inputs, outputs=item.outputs)
+        return cls(item.name, "failed", message=label_message(item.name, message), inputs=item.inputs,
+                   outputs=item.outputs, exit_code=exit_code)
 
 
 @dataclass
 class BatchResult:
-    """Per-item outcomes in input order."""
+    """Per-item outcomes in input order. When the batch was interrupted (``interrupted`` is the
+    signal number), ``results`` holds only the items that finished, of ``total``."""
 
     results: list[ItemResult]
+    interrupted: int | None = None
+    total: int | None = None
 
     @property
     def failed(self) -> list[ItemResult]:
@@ -70,7 +117,21 @@ class BatchResult:
 
     @property
     def exit_code(self) -> int:
-        return EXIT_PARTIAL if self.failed else EXIT_OK
+        """128 + signal when interrupted; 0 all ok; 3 some failed; when nothing succeeded, 2 if
+        every failure was a usage/configuration error, else 1."""
+        if self.interrupted:
+            return 128 + self.interrupted
+        return batch_exit_code(self.results)
+
+
+def batch_exit_code(results: list[ItemResult]) -> int:
+    """The exit code of a finished batch of ``results`` (see :attr:`BatchResult.exit_code`)."""
+    failed = [r for r in results if r.status == "failed"]
+    if not failed:
+        return EXIT_OK
+    if any(r.status in ("ok", "skipped") for r in results):
+        return EXIT_PARTIAL
+    return EXIT_USAGE if all(r.exit_code == EXIT_USAGE for r in failed) else EXIT_DATA
 
 
 def check_outputs(items: list[WorkItem], *, overwrite: bool, skip_existing: bool) -> None:
@@ -82,43 +143,206 @@ def check_outputs(items: list[WorkItem], *, overwrite: bool, skip_existing: bool
 
 
 def is_done(item: WorkItem) -> bool:
-    """True when every output of ``item`` exists (``--skip-existing`` skips it)."""
-    return bool(item.outputs) and len(item.existing_outputs()) == len(item.outputs)
+    """True when every output of ``item`` exists, and for an item with a folder its completion
+    marker too (``--skip-existing`` skips it)."""
+    if not item.outputs or len(item.existing_outputs()) != len(item.outputs):
+        return False
+    return item.marker is None or item.marker.is_file()
+
+
+def finished_in_run(item: WorkItem) -> bool:
+    """True when ``item``'s outputs were committed by the run ``item.run_id`` (its result may
+    have been lost with an interrupted parent or a lost scheduler, its outputs were not)."""
+    if not (item.run_id and is_done(item)):
+        return False
+    try:
+        return json.loads(item.marker.read_text()).get("run") == item.run_id
+    except (OSError, ValueError, AttributeError):
+        return False
 
 
 def run_one(item_fn: Callable[[WorkItem], dict], item: WorkItem, verbose_errors: bool) -> ItemResult:
-    """Run ``item_fn(item)``; any exception becomes a failed outcome with a one-line message
-    (plus the traceback with ``verbose_errors``). Seconds are wall-clock."""
+    """Run ``item_fn`` on ``item`` with its outputs staged, then commit them together.
+
+    Any exception becomes a failed outcome with a one-line message naming the item (plus the
+    traceback with ``verbose_errors``); nothing of a failed item reaches its final paths.
+    Seconds are wall-clock.
+    """
+    if item.error:
+        return ItemResult.failure(item, item.error, item.error_code)
     t0 = time.perf_counter()
+    stage: Path | None = None
+    dead = 0
+    details: dict = {}
+    status, message, code = "ok", "", EXIT_OK
     try:
-        remove_temporaries(item)  # left by an attempt whose process died (killed worker, earlier run)
-        details = item_fn(item) or {}
-        status, message = "ok", ""
+        dead = remove_temporaries(item)  # left by attempts whose process died (killed worker, earlier run)
+        staged, stage = _stage(item)
+        details = item_fn(staged) or {}
+        if stage is not None:
+            _commit(item, stage)
     except StereoError as exc:
-        details, status, message = {}, "failed", str(exc)
+        _reraise_interrupt(exc)
+        status, message, code = "failed", str(exc), exc.exit_code
     except MemoryError:
-        details, status, message = {}, "failed", "out of memory"
+        status, message, code = "failed", "out of memory", EXIT_DATA
     except Exception as exc:  # noqa: BLE001 - one item's bug must not kill the batch
-        details, status = {}, "failed"
-        message = f"{type(exc).__name__}: {exc}"
+        _reraise_interrupt(exc)
+        status, code = "failed", EXIT_DATA
+        message = _describe(exc)
         if verbose_errors:
             message += "\n" + traceback.format_exc()
+    finally:
+        if stage is not None and stage.exists():
+            shutil.rmtree(stage, ignore_errors=True)
+    if status == "failed":
+        details = {}
+        if stage is not None:  # name the final folder, not the staging one
+            message = message.replace(str(stage), item.folder or str(Path(next(iter(item.outputs.values()))).parent))
+        message = label_message(item.name, message)
     return ItemResult(item.name, status, round(time.perf_counter() - t0, 4), message, details,
-                      item.inputs, item.outputs, 1)
+                      item.inputs, item.outputs, 1 + dead, code)
 
 
-def remove_temporaries(item: WorkItem) -> None:
-    """Delete temporary files a dead attempt may have left beside ``item``'s outputs.
+def _reraise_interrupt(exc: BaseException) -> None:
+    """Raise the interrupt hidden in ``exc``: a signal handler that raises while a compiled
+    kernel returns surfaces as ``SystemError`` (with the interrupt as its context), and code
+    that turns every exception into a message must not turn a Ctrl-C into a failed item."""
+    from ..errors import Interrupted
+    from ..process import interrupt_received
+
+    seen = exc
+    while seen is not None:
+        if isinstance(seen, KeyboardInterrupt):
+            raise seen from None
+        seen = seen.__cause__ or seen.__context__
+    signum = interrupt_received()
+    if signum is not None:
+        raise Interrupted(signum) from None
+
+
+def _describe(exc: Exception) -> str:
+    if isinstance(exc, OSError) and exc.strerror:
+        return f"{exc.filename}: {exc.strerror}" if exc.filename else exc.strerror
+    return f"{type(exc).__name__}: {exc}"
+
+
+def label_message(name: str, message: str) -> str:
+    """``message`` starting with ``name:`` (every error line names its item)."""
+    return message if message.startswith(f"{name}:") else f"{name}: {message}"
+
+
+# --- staging and committing -------------------------------------------------------------------
+
+
+def _staging_label(item: WorkItem) -> tuple[Path, str]:
+    """The staging root of ``item`` and the prefix of its staging folders."""
+    if item.folder:
+        folder = Path(item.folder)
+        return folder.parent / STAGING, folder.name
+    return Path(next(iter(item.outputs.values()))).parent / STAGING, item.name
+
+
+def _stage(item: WorkItem) -> tuple[WorkItem, Path | None]:
+    """``item`` with its outputs redirected into a fresh staging folder (and that folder);
+    unchanged when it has no outputs or two outputs share a file name."""
+    names = [Path(p).name for p in item.outputs.values()]
+    if not names or len(set(names)) != len(names):
+        return item, None
+    root, label = _staging_label(item)
+    root.mkdir(parents=True, exist_ok=True)
+    stage = Path(tempfile.mkdtemp(prefix=f"{label}.", suffix=f".{_run_tag(item)}.stage", dir=root))
+    plain_mode(stage, 0o777)  # mkdtemp makes 0700
+    return replace(item, outputs={k: str(stage / Path(p).name) for k, p in item.outputs.items()}), stage
+
+
+def _commit(item: WorkItem, stage: Path) -> None:
+    """Move the staged outputs of ``item`` into place (signals wait until it is done)."""
+    from ..process import deferred_interrupts
+
+    with deferred_interrupts():
+        if item.folder:
+            _commit_folder(item, stage)
+        else:
+            for final in item.outputs.values():
+                src = stage / Path(final).name
+                if src.exists():
+                    Path(final).parent.mkdir(parents=True, exist_ok=True)
+                    os.replace(src, final)
+
+
+def _marker_outputs(marker: Path) -> list[str]:
+    """The output names a completion marker lists ([] when absent or unreadable)."""
+    try:
+        names = json.loads(marker.read_text()).get("outputs", [])
+    except (OSError, ValueError, AttributeError):
+        return []
+    return [n for n in names if isinstance(n, str) and "/" not in n and n not in ("", ".", "..")]
+
+
+def _commit_folder(item: WorkItem, stage: Path) -> None:
+    folder, marker = Path(item.folder), item.marker
+    written = sorted(p.name for p in stage.iterdir())
+    write_text(stage / marker.name, json.dumps({"command": item.command, "outputs": written, "run": item.run_id,
+                                                "finished": time.strftime("%Y-%m-%dT%H:%M:%S%z")}) + "\n")
+    if not os.path.lexists(folder):
+        folder.parent.mkdir(parents=True, exist_ok=True)
+        os.rename(stage, folder)
+        return
+    previous = _marker_outputs(marker)
+    ours = set(written) | set(previous) | {marker.name}
+    if folder.is_dir() and not folder.is_symlink() and set(os.listdir(folder)) <= ours:
+        old = stage.with_suffix(".old")
+        os.rename(folder, old)
+        os.rename(stage, folder)
+        shutil.rmtree(old, ignore_errors=True)
+        return
+    # Shared with other files: replace ours one by one, unmarked until the last rename.
+    marker.unlink(missing_ok=True)
+    for name in set(previous) - set(written):
+        (folder / name).unlink(missing_ok=True)  # an output of the previous run this one does not write
+    for name in written:
+        os.replace(stage / name, folder / name)
+    os.replace(stage / marker.name, marker)
+
+
+def _run_tag(item: WorkItem) -> str:
+    return (item.run_id + "0" * 8)[:8]
+
+
+def remove_temporaries(item: WorkItem) -> int:
+    """Delete what a dead attempt may have left of ``item``: its staging folders, and temporary
+    files beside its outputs. Returns how many staging folders of this run (``item.run_id``)
+    there were: attempts that died (so ``attempts`` counts Dask's re-runs after a worker died).
 
     Matches only the names :func:`stereocli.io.atomic.atomic_path` gives the temporaries of
-    these outputs (``.<stem>.<8 random chars>.tmp<suffix>``, from :func:`tempfile.mkstemp`), never
-    files under final names nor temporaries of other outputs in the same folder.
+    these outputs (``.<stem>.<8 random chars>.tmp<suffix>``, from :func:`tempfile.mkstemp`) and
+    this item's staging folders (``<name>.<8 random>.<8 run id>.stage``, ``.old``), never files
+    under final names nor other items' temporaries.
     """
+    dead = 0
     for out in item.outputs.values():
         path = Path(out)
         if path.parent.is_dir():
             for tmp in path.parent.glob(f".{glob.escape(path.stem)}.{'?' * 8}.tmp{glob.escape(path.suffix)}"):
                 tmp.unlink(missing_ok=True)
+    if item.outputs:
+        root, label = _staging_label(item)
+        if root.is_dir():
+            for suffix in ("stage", "old"):
+                for leftover in root.glob(f"{glob.escape(label)}.{'?' * 8}.{'?' * 8}.{suffix}"):
+                    dead += suffix == "stage" and leftover.name.endswith(f".{_run_tag(item)}.stage")
+                    shutil.rmtree(leftover, ignore_errors=True)
+    return dead
+
+
+def remove_staging_roots(items: list[WorkItem]) -> None:
+    """Remove the items' staging roots that are left empty."""
+    for root in {_staging_label(item)[0] for item in items if item.outputs}:
+        try:
+            root.rmdir()
+        except OSError:
+            pass  # absent, or still holds another run's or a dead attempt's folder
 
 
 def prepare_worker() -> None:

@@ -9,7 +9,14 @@ Outputs per pair, in ``OUTDIR/<name>/``:
 * ``disp0_viz.png`` — 8-bit colour preview, not data (``viz``);
 * ``conf0.pfm`` — confidence in [0, 1] (``confidence``); ``disp1.pfm`` — right view (``right``);
 * ``time.txt`` — matching seconds (Middlebury convention);
-* ``params.json`` — effective config, versions, disparity range, timings per stage.
+* ``params.json`` — effective config, versions, disparity range (and where it came from), row
+  alignment, timings per stage.
+
+The disparity range of a pair comes from ``--ndisp``/``--min-disp``, else from its
+``calib.txt``, else (and always with ``--ndisp auto``) it is estimated from the images
+(:mod:`stereocli.features.disparity_range`). Every pair's row alignment is measured from sparse
+matches (:mod:`stereocli.features.alignment`): a misaligned pair is reported with a warning,
+or fails with ``require_aligned``.
 
 With ``split_strips`` the item task runs :func:`~stereocli.match.pipeline.prepare` and
 :func:`~stereocli.match.pipeline.finish` itself and sends each strip's volume stages
@@ -28,10 +35,10 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ..errors import ConfigError, DataError
+from ..errors import ConfigError, DataError, StereoError
 from ..io.atomic import write_text
 from ..io.pairs import StereoInput
-from .items import WorkItem, prepare_worker
+from .items import WorkItem, label_message, prepare_worker
 
 if TYPE_CHECKING:
     from ..match.pipeline import PreparedPair, StripMap, StripResult
@@ -40,10 +47,17 @@ if TYPE_CHECKING:
 _CONFIG_CACHE: dict[str, Any] = {}
 
 
-def resolve_range(pair: StereoInput, ndisp: int | None, min_disp: int | None) -> tuple[int, int, dict]:
-    """Disparity range for a pair: options first, else its ``calib.txt``, else a ConfigError.
+#: ``ndisp`` value asking for an estimated range.
+AUTO = "auto"
 
-    Returns ``(min_disp, ndisp, calib_info)`` where ``calib_info`` holds vmin/vmax for previews.
+
+def resolve_range(pair: StereoInput, ndisp: int | str | None, min_disp: int | None) -> tuple[int | None, int | None, dict]:
+    """Disparity range for a pair: ``--ndisp N`` first, else its ``calib.txt``, else estimated.
+
+    Returns ``(min_disp, ndisp, info)``; both are None when the range is to be estimated from the
+    images (``ndisp`` is :data:`AUTO`, or neither an option nor a calib.txt gives it). ``info``
+    holds ``range_source`` (``option``, ``calib.txt`` or ``estimated``) and calib.txt's vmin/vmax
+    for previews.
     """
     info: dict = {}
     if pair.calib:
@@ -52,12 +66,15 @@ def resolve_range(pair: StereoInput, ndisp: int | None, min_disp: int | None) ->
         calib = read_calib_txt(pair.calib)
         info = {"vmin": calib.vmin, "vmax": calib.vmax}
         if ndisp is None and calib.ndisp > 0:
-            ndisp = calib.ndisp
-    if ndisp is None:
-        raise ConfigError(
-            f"{pair.name}: no disparity range: give --ndisp N (and --min-disp) or put a calib.txt with ndisp= in "
-            f"{pair.folder or Path(pair.left).parent}"
-        )
+            info["range_source"] = "calib.txt"
+            return int(min_disp or 0), int(calib.ndisp), info
+    if ndisp is None or ndisp == AUTO:
+        if min_disp is not None:
+            raise ConfigError(f"{pair.name}: --min-disp needs --ndisp N (or a calib.txt with ndisp=); "
+                              "an estimated range sets both")
+        info["range_source"] = "estimated"
+        return None, None, info
+    info["range_source"] = "option"
     return int(min_disp or 0), int(ndisp), info
 
 
@@ -66,7 +83,7 @@ def plan_items(
     outdir: str | Path,
     *,
     config: dict,
-    ndisp: int | None,
+    ndisp: int | str | None,
     min_disp: int | None,
     png16_scale: float | None = None,
     npy: bool = False,
@@ -75,17 +92,27 @@ def plan_items(
     right: bool = False,
     keep_invalid: bool = False,
     split_strips: bool = False,
+    require_aligned: bool = False,
     record_info: dict | None = None,
 ) -> list[WorkItem]:
     """One :class:`WorkItem` per pair with its inputs, outputs and options.
+
+    ``ndisp``: a number, :data:`AUTO` (estimate every pair's range) or None (calib.txt, else
+    estimate); ``require_aligned`` fails pairs whose rows are not aligned.
 
     ``config`` is the effective config as a plain dict; ``split_strips`` spreads each pair's
     strips over the Dask cluster its task runs on (a pair with one strip runs whole).
     """
     outdir = Path(outdir)
+    if confidence:
+        check_confidence(config)  # a pipeline without a confidence stage fails here, before any work
     items = []
     for pair in pairs:
-        lo, nd, info = resolve_range(pair, ndisp, min_disp)
+        error = None
+        try:
+            lo, nd, info = resolve_range(pair, ndisp, min_disp)
+        except StereoError as exc:  # this pair's failure (a bad calib.txt), not the batch's
+            error, (lo, nd, info) = exc, (None, None, {"range_source": None})
         folder = outdir / pair.name
         outputs = {"disparity": str(folder / "disp0.pfm"), "time": str(folder / "time.txt"),
                    "params": str(folder / "params.json")}
@@ -103,12 +130,14 @@ def plan_items(
         for key in ("calib", "left_valid", "right_valid"):
             if getattr(pair, key):
                 inputs[key] = getattr(pair, key)
-        options = {"config": config, "min_disp": lo, "ndisp": nd, "png16_scale": png16_scale,
-                   "keep_invalid": keep_invalid, "vmin": info.get("vmin"), "vmax": info.get("vmax"),
-                   "record": record_info or {}}
+        options = {"config": config, "min_disp": lo, "ndisp": nd, "range_source": info["range_source"],
+                   "png16_scale": png16_scale, "keep_invalid": keep_invalid, "require_aligned": require_aligned,
+                   "vmin": info.get("vmin"), "vmax": info.get("vmax"), "record": record_info or {}}
         if split_strips:
             options["split_strips"] = True
-        items.append(WorkItem(pair.name, inputs, outputs, options))
+        items.append(WorkItem(pair.name, inputs, outputs, options, folder=str(folder), command="match"))
+        if error is not None:
+            items[-1].error, items[-1].error_code = label_message(pair.name, str(error)), error.exit_code
     return items
 
 
@@ -131,11 +160,51 @@ def _load_mask(path: str | None) -> np.ndarray | None:
     return mask > 127
 
 
-def _remove_stale_temporaries(folder: Path) -> None:
-    # The pair's folder is its own: any temporary in it is a dead attempt's (never a final name).
-    if folder.is_dir():
-        for tmp in folder.glob(".*.tmp*"):
-            tmp.unlink(missing_ok=True)
+_WARMED: set = set()
+
+
+def _tiny_match(config, *, channels: int, dtype: np.dtype, min_disp: int, ndisp: int, masks: bool, **flags):
+    """:func:`~stereocli.match.pipeline.match_pair` on a small random pair of this kind
+    (channels, dtype, valid masks, wanted outputs) with at most 32 disparities."""
+    from ..match.pipeline import match_pair
+
+    nd = max(1, min(int(ndisp), 32))
+    h, w = 48, nd + 64
+    info = np.iinfo(dtype) if np.issubdtype(dtype, np.integer) else None
+    high = info.max if info else 255
+    shape = (h, w, channels) if channels > 1 else (h, w)
+    left = np.random.default_rng(0).integers(0, high, shape, endpoint=True).astype(dtype)
+    right = np.roll(left, -max(0, min_disp) - nd // 2, axis=1)
+    valid = np.ones((h, w), bool) if masks else None
+    return match_pair(left, right, config, min_disp=int(min_disp), ndisp=nd, left_valid=valid, right_valid=valid,
+                      **flags)
+
+
+def _warm_up(config, left: np.ndarray, *, min_disp: int, ndisp: int, masks: bool, **flags) -> None:
+    """Once per process and kind of call, match a tiny pair first, so that the time of the first
+    real pair (``time.txt``) holds matching, not loading (or compiling) the kernels."""
+    key = (id(config), left.ndim, left.dtype.str, masks, tuple(sorted(flags.items())))
+    if key in _WARMED:
+        return
+    _WARMED.add(key)
+    try:
+        _tiny_match(config, channels=left.shape[2] if left.ndim == 3 else 1, dtype=left.dtype,
+                    min_disp=min_disp, ndisp=ndisp, masks=masks, **flags)
+    except Exception:  # noqa: BLE001 - only a warm-up: the real pair reports its own errors
+        pass
+
+
+def check_confidence(config: dict) -> None:
+    """Raise :class:`ConfigError` unless the pipeline of ``config`` (a plain dict) produces a
+    confidence map (``match --confidence``), found by matching a tiny pair before any work."""
+    validated = _config(config)
+    result = _tiny_match(validated, channels=3, dtype=np.dtype(np.uint8), min_disp=0, ndisp=16, masks=False,
+                         want_confidence=True)
+    if result.confidence is None:
+        names = ", ".join(c["name"] for c in config.get("refinement", [])) or "none"
+        raise ConfigError(f"--confidence: the configured pipeline produces no confidence map (refinement: {names}); "
+                          "add a refinement stage that does, e.g. --set 'refinement=[..., {name: confidence}]' "
+                          "in a config file")
 
 
 def match_item(item: WorkItem) -> dict:
@@ -146,7 +215,6 @@ def match_item(item: WorkItem) -> dict:
 
     opts = item.options
     config = _config(opts["config"])
-    _remove_stale_temporaries(Path(item.outputs["disparity"]).parent)
     t_load = time.perf_counter()
     left = read_image(item.inputs["left"])
     right = read_image(item.inputs["right"])
@@ -162,18 +230,22 @@ def match_item(item: WorkItem) -> dict:
     right_valid = _load_mask(item.inputs.get("right_valid"))
     load_seconds = time.perf_counter() - t_load
 
+    survey = survey_pair(item.name, left, right, opts, left_valid=left_valid, right_valid=right_valid)
+    min_disp, ndisp = survey["range"]["min_disp"], survey["range"]["ndisp"]
     strip_map = cluster_strip_map(opts["config"]) if opts.get("split_strips") else None
+    flags = {"want_right": "right" in item.outputs, "keep_invalid": opts["keep_invalid"],
+             "want_confidence": "confidence" in item.outputs}
+    _warm_up(config, left, min_disp=min_disp, ndisp=ndisp, masks=left_valid is not None, **flags)
     t0 = time.perf_counter()
-    result = match_pair(left, right, config, min_disp=opts["min_disp"], ndisp=opts["ndisp"],
-                        left_valid=left_valid, right_valid=right_valid,
-                        want_right="right" in item.outputs, keep_invalid=opts["keep_invalid"],
-                        want_confidence="confidence" in item.outputs, strip_map=strip_map)
+    result = match_pair(left, right, config, min_disp=min_disp, ndisp=ndisp,
+                        left_valid=left_valid, right_valid=right_valid, strip_map=strip_map, **flags)
     seconds = time.perf_counter() - t0
 
     out = item.outputs
     write_pfm(out["disparity"], result.disparity)
+    png16_lost = 0
     if "png16" in out:
-        write_disparity(out["png16"], result.disparity, png_scale=opts["png16_scale"])
+        png16_lost = write_disparity(out["png16"], result.disparity, png_scale=opts["png16_scale"])
     if "npy" in out:
         write_disparity(out["npy"], result.disparity)
     if "viz" in out:
@@ -191,19 +263,58 @@ def match_item(item: WorkItem) -> dict:
     h, w = result.disparity.shape
     finite = np.isfinite(result.disparity)
     details = {
-        "width": w, "height": h, "min_disp": opts["min_disp"], "ndisp": opts["ndisp"],
+        "width": w, "height": h, "min_disp": min_disp, "ndisp": ndisp,
         "seconds": round(seconds, 4), "load_seconds": round(load_seconds, 4),
         "stage_seconds": result.timings, "strips": result.strips,
         "memory_estimate_gb": round(result.memory_estimate_gb, 3),
-        "mde_per_s": round(w * h * opts["ndisp"] / max(seconds, 1e-9) / 1e6, 2),
+        "mde_per_s": round(w * h * ndisp / max(seconds, 1e-9) / 1e6, 2),
         "valid_fraction": round(float(finite.mean()), 6),
+        **survey,
     }
+    if png16_lost:
+        details["png16_unrepresentable"] = png16_lost
+        details["warnings"] = [*details.get("warnings", []),
+                               f"disp0.png: {png16_lost} valid pixels outside [1, 65535] / {opts['png16_scale']:g} px "
+                               "written as 0 (invalid); disp0.pfm has them"]
     params = {"pair": item.name, "inputs": item.inputs, "config": opts["config"], **details,
               **opts.get("record", {})}
     write_text(out["params"], json.dumps(params, indent=2) + "\n")
-    # time.txt last: its presence marks a complete result for resumption tools.
     write_text(out["time"], f"{seconds:.6f}\n")
     return details
+
+
+def survey_pair(name: str, left: np.ndarray, right: np.ndarray, opts: dict, *,
+                left_valid: np.ndarray | None = None, right_valid: np.ndarray | None = None) -> dict:
+    """Row alignment of the pair, and its disparity range when it is to be estimated.
+
+    Returns the run-record entries ``range`` (``min_disp``, ``ndisp``, ``source`` and, when
+    estimated, the ``evidence``), ``alignment`` and ``warnings``, plus ``survey_seconds``.
+    Raises :class:`DataError` when a range cannot be estimated, or when the rows are not aligned
+    and ``opts["require_aligned"]``.
+    """
+    from ..features.alignment import row_alignment
+    from ..features.points import match_points
+
+    t0 = time.perf_counter()
+    matches = match_points(left, right, left_valid=left_valid, right_valid=right_valid)
+    alignment = row_alignment(matches)
+    warnings = []
+    if not alignment.aligned:
+        message = f"rows not aligned: {alignment.describe()}; rectify the pair first"
+        if opts.get("require_aligned"):
+            raise DataError(f"{name}: {message} (--require-aligned)")
+        warnings.append(message)
+    span = {"min_disp": opts["min_disp"], "ndisp": opts["ndisp"], "source": opts["range_source"]}
+    if opts["ndisp"] is None:
+        from ..features.disparity_range import estimate_range
+
+        try:
+            estimate = estimate_range(left, right, matches)
+        except DataError as exc:
+            raise DataError(f"{name}: {exc}") from None
+        span.update(min_disp=estimate.min_disp, ndisp=estimate.ndisp, evidence=estimate.as_dict())
+    return {"range": span, "alignment": alignment.as_dict(), "warnings": warnings,
+            "survey_seconds": round(time.perf_counter() - t0, 4)}
 
 
 def cluster_strip_map(config_dict: dict) -> StripMap:

@@ -5,6 +5,12 @@ dtype and channels kept), ``valid0.png``/``valid1.png`` (255 = pixel sampled fro
 source image), ``calib.txt`` (Middlebury style for the rectified pair: cam0/cam1, doffs,
 baseline in mm when the unit is known, width/height, ndisp estimate) and optionally
 ``check.png`` (8-bit side-by-side preview with horizontal lines and valid ROI boxes).
+
+Without a calibration (``--uncalibrated``) the homographies are estimated first, in the
+calling process, from every pair of the rig together (:func:`estimate_uncalibrated`); the
+items then only warp. ``calib.txt`` holds the rectified views' virtual cameras, the size and
+the estimated disparity range, but no baseline (``rectification=uncalibrated``), and
+``rectification.json`` the homographies ``H0``/``H1`` and what the estimate found in the pair.
 """
 
 from __future__ import annotations
@@ -25,14 +31,18 @@ def plan_items(pairs: list[StereoInput], outdir: str | Path, *, calib_path: str,
     items = []
     for pair in pairs:
         out = Path(outdir) / pair.name
-        outputs = {k: str(out / f) for k, f in (("im0", "im0.png"), ("im1", "im1.png"), ("valid0", "valid0.png"),
-                                                ("valid1", "valid1.png"), ("calib", "calib.txt"))}
-        if check:
-            outputs["check"] = str(out / "check.png")
+        outputs = _outputs(out, check)
         items.append(WorkItem(pair.name, {"left": pair.left, "right": pair.right, "calibration": str(calib_path)},
                               outputs, {"alpha": alpha, "size": list(size) if size else None,
-                                        "interpolation": interpolation, "ndisp": ndisp, "min_depth": min_depth}))
+                                        "interpolation": interpolation, "ndisp": ndisp, "min_depth": min_depth},
+                              folder=str(out), command="rectify"))
     return items
+
+
+def _outputs(folder: Path, check: bool, *more: str) -> dict[str, str]:
+    """The output paths of one pair: images, masks, calib.txt, ``more`` files, check.png."""
+    names = ["im0.png", "im1.png", "valid0.png", "valid1.png", "calib.txt", *more] + (["check.png"] if check else [])
+    return {Path(name).stem: str(folder / name) for name in names}
 
 
 def _maps_for(calib_path: str, alpha: float, size):
@@ -48,12 +58,37 @@ def _maps_for(calib_path: str, alpha: float, size):
     return _MAPS_CACHE[key]
 
 
+def _rectified_range(left, right, rect, opts: dict) -> tuple[int, dict]:
+    """``ndisp`` for the rectified pair's calib.txt and where it came from.
+
+    ``--ndisp`` wins. Otherwise the range is estimated from the rectified images
+    (:func:`~stereocli.features.disparity_range.estimate_range`; rectification puts infinity at
+    disparity 0, so calib.txt's ``[0, ndisp)`` is rounded up to a multiple of 16 to reach the
+    estimate's far end), at least ``f·B / --min-depth`` when that is given. A pair without
+    enough texture falls back to the depth rule alone (a quarter of the width without
+    ``--min-depth``).
+    """
+    from ..features.disparity_range import estimate_range
+    from ..rectify.maps import estimate_ndisp
+
+    if opts["ndisp"]:
+        return int(opts["ndisp"]), {"source": "option"}
+    by_depth = estimate_ndisp(rect, min_depth=opts["min_depth"]) if opts["min_depth"] else 0
+    try:
+        estimate = estimate_range(left, right)
+    except DataError as exc:
+        return estimate_ndisp(rect, min_depth=opts["min_depth"]), {"source": "depth", "note": str(exc)}
+    ndisp = max(16 * -(-(estimate.max_disp + 1) // 16), by_depth)
+    return ndisp, {"source": "estimated", "min_disp": estimate.min_disp, "max_disp": estimate.max_disp,
+                   "evidence": estimate.as_dict()}
+
+
 def rectify_item(item: WorkItem) -> dict:
     """Rectify one pair (see the module docstring for outputs); returns run-record details."""
     from ..io.calib import to_middlebury
     from ..io.images import read_image, write_image
     from ..io.middlebury import write_calib_txt
-    from ..rectify.maps import check_image, estimate_ndisp, rectified_calibration, rectify_images
+    from ..rectify.maps import check_image, rectified_calibration, rectify_images
 
     opts = item.options
     calib, maps = _maps_for(item.inputs["calibration"], opts["alpha"], opts["size"])
@@ -66,8 +101,10 @@ def rectify_item(item: WorkItem) -> dict:
         raise DataError(f"{item.inputs['calibration']}: vertical rig; stereocli rectifies horizontal pairs only")
     r0, r1 = rectify_images(left, right, maps, interpolation=opts["interpolation"])
     rect = maps.rect
-    ndisp = opts["ndisp"] or estimate_ndisp(rect, min_depth=opts["min_depth"] or calib.extra.get("board_depth_min"))
+    ndisp, span = _rectified_range(r0, r1, rect, opts)
     mb = to_middlebury(rectified_calibration(calib, rect=rect), ndisp=ndisp)
+    if span.get("evidence"):
+        mb.vmin, mb.vmax = float(max(0, span["min_disp"])), float(span["max_disp"])
     out = item.outputs
     write_image(out["im0"], r0)
     write_image(out["im1"], r1)
@@ -77,6 +114,127 @@ def rectify_item(item: WorkItem) -> dict:
     if "check" in out:
         write_image(out["check"], check_image(r0, r1, rect))
     return {"size": list(rect.size), "f": float(rect.P1[0, 0]), "baseline_mm": mb.baseline, "doffs": mb.doffs,
-            "ndisp": ndisp, "roi_left": list(rect.roi1), "roi_right": list(rect.roi2),
+            "ndisp": ndisp, "range": span, "roi_left": list(rect.roi1), "roi_right": list(rect.roi2),
             "valid_fraction_left": float((maps.valid1 > 0).mean()),
             "valid_fraction_right": float((maps.valid2 > 0).mean())}
+
+
+# --------------------------------------------------------------------------- without a calibration
+
+#: A pair of a rig is reported when the rig's homographies do not suit it: too few of its matches
+#: fit them (another rig, or a camera that moved), or its inliers' residual vertical disparity is
+#: above this (px, median).
+RIG_DY_WARNING = 1.0
+
+
+def plan_uncalibrated(pairs: list[StereoInput], outdir: str | Path, *, interpolation: str = "linear",
+                      check: bool = False, ndisp: int | None = None) -> list[WorkItem]:
+    """One :class:`WorkItem` per pair for ``rectify --uncalibrated``; :func:`estimate_uncalibrated`
+    adds the homographies to their options."""
+    return [WorkItem(pair.name, {"left": pair.left, "right": pair.right},
+                     _outputs(Path(outdir) / pair.name, check, "rectification.json"),
+                     {"uncalibrated": True, "interpolation": interpolation, "ndisp": ndisp},
+                     folder=str(Path(outdir) / pair.name), command="rectify")
+            for pair in pairs]
+
+
+class _PairImages:
+    """The items' images, read when asked for (one pair in memory at a time)."""
+
+    def __init__(self, items: list[WorkItem]) -> None:
+        self.items = items
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def __getitem__(self, i: int):
+        from ..io.images import read_image
+
+        return read_image(self.items[i].inputs["left"]), read_image(self.items[i].inputs["right"])
+
+
+def estimate_uncalibrated(items: list[WorkItem], *, per_pair: bool = False) -> dict:
+    """Estimate the homographies of ``items`` (one pair for all of them, the rig; with
+    ``per_pair`` one per item) and store them in each item's options; an item that cannot be
+    rectified gets its ``error`` (it fails alone). Returns the report of every estimate."""
+    from ..errors import StereoError
+    from ..rectify.uncalibrated import estimate_rectification
+
+    groups = [[item] for item in items] if per_pair else [items]
+    rigs = []
+    for group in groups:
+        names = [item.name for item in group]
+        try:
+            estimate = estimate_rectification(_PairImages(group))
+        except StereoError as exc:
+            for item in group:
+                item.error = str(exc)
+            rigs.append({"pairs": names, "error": str(exc)})
+            continue
+        rect = estimate.rectification.as_dict()
+        used = [item.name for item, pair in zip(group, estimate.pairs) if pair.error is None]
+        rigs.append({"pairs": names, "estimated_from": used, "magsac_inliers": estimate.magsac_inliers,
+                     **{k: v for k, v in rect.items() if k not in ("H0", "H1", "F")}})
+        for item, pair in zip(group, estimate.pairs):
+            if pair.error:
+                item.error = pair.error
+                continue
+            item.options.update(rectification=rect, pair=pair.as_dict(),
+                                range={"min_disp": pair.min_disp, "max_disp": pair.max_disp,
+                                       "evidence": pair.evidence},
+                                rig={"pairs": names, "estimated_from": used})
+    return {"homographies": "one per pair" if per_pair else "one for all pairs", "rigs": rigs}
+
+
+def uncalibrated_calib_txt(rect, ndisp: int, min_disp: int, max_disp: int):
+    """The Middlebury calib.txt of an uncalibrated rectification ``rect``: the rectified views'
+    virtual cameras (``doffs`` = where infinity would be if their focal length were right), the
+    size and the disparity range; no baseline (0), and ``rectification=uncalibrated`` says why."""
+    from ..io.middlebury import MiddleburyCalib
+
+    return MiddleburyCalib(cam0=rect.camera0, cam1=rect.camera1, doffs=float(rect.camera1[0, 2] - rect.camera0[0, 2]),
+                           baseline=0.0, width=int(rect.size[0]), height=int(rect.size[1]), ndisp=int(ndisp), isint=0,
+                           vmin=float(min_disp), vmax=float(max_disp), extra={"rectification": "uncalibrated"})
+
+
+def rectify_uncalibrated_item(item: WorkItem) -> dict:
+    """Warp one pair by the homographies :func:`estimate_uncalibrated` stored in its options."""
+    import json
+    import re
+
+    from ..io.atomic import write_text
+    from ..io.images import read_image, write_image
+    from ..io.middlebury import write_calib_txt
+    from ..rectify.maps import check_image, inner_box
+    from ..rectify.uncalibrated import UncalibratedRectification, warp_pair
+
+    opts = item.options
+    rect = UncalibratedRectification.from_dict(opts["rectification"])
+    left, right = read_image(item.inputs["left"]), read_image(item.inputs["right"])
+    r0, r1, valid0, valid1 = warp_pair(left, right, rect, interpolation=opts["interpolation"])
+    span = opts["range"]
+    ndisp = int(opts["ndisp"] or 16 * -(-(span["max_disp"] + 1) // 16))
+    out = item.outputs
+    write_image(out["im0"], r0)
+    write_image(out["im1"], r1)
+    write_image(out["valid0"], valid0)
+    write_image(out["valid1"], valid1)
+    write_calib_txt(out["calib"], uncalibrated_calib_txt(rect, ndisp, span["min_disp"], span["max_disp"]))
+    record = {**opts["rectification"], "convention": "H0, H1: original pixel (x, y, 1) -> rectified pixel; "
+              "pixel centres at integer coordinates", "rig": opts["rig"], "pair": opts["pair"], "range": span,
+              "ndisp": ndisp}
+    # One matrix row per line: the file is read by people as well as by programs.
+    text = re.sub(r"\[\s+([^\[\]{}]*?)\s+\]", lambda m: "[" + " ".join(m.group(1).split()) + "]",
+                  json.dumps(record, indent=2))
+    write_text(out["rectification"], text + "\n")
+    if "check" in out:
+        write_image(out["check"], check_image(r0, r1, rois=(inner_box(valid0), inner_box(valid1))))
+    details = {"size": list(rect.size), "ndisp": ndisp, "range": {k: span[k] for k in ("min_disp", "max_disp")},
+               **opts["pair"], "distortion": opts["rectification"]["distortion"],
+               "valid_fraction_left": float((valid0 > 0).mean()), "valid_fraction_right": float((valid1 > 0).mean())}
+    pair = opts["pair"]
+    if len(opts["rig"]["pairs"]) > 1 and (not pair["fits"] or (pair["dy_median"] or 0) > RIG_DY_WARNING):
+        details["warnings"] = [f"only {pair['inliers']} of {pair['matches']} matches fit the rig's homographies "
+                               f"(residual vertical disparity {pair['dy_median'] or 0:.2f} px median); if this pair "
+                               "comes from another rig, rectify it with --per-pair"]
+    return details

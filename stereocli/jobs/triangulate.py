@@ -48,7 +48,7 @@ def _find_inputs(inputs: list[str] | tuple[str, ...]) -> tuple[list[tuple[str, P
             if d is not None:
                 found.append((p.name, d))
                 continue
-            subs = sorted(x for x in p.iterdir() if x.is_dir())
+            subs = sorted(x for x in p.iterdir() if x.is_dir() and not x.name.startswith("."))
             for sub in subs:
                 d = find_disparity(sub)
                 if d is not None:
@@ -118,8 +118,20 @@ def plan_items(inputs: list[str] | tuple[str, ...], output: str, *, calib: str |
                 outputs["depth_png16"] = str(folder / "depth_mm.png")
             if summary:
                 outputs["summary"] = str(folder / "summary.json")
-        items.append(WorkItem(name, inputs_, outputs, dict(options or {})))
+        items.append(WorkItem(name, inputs_, outputs, dict(options or {}), folder="" if single else str(out / name),
+                              command="triangulate"))
     return items, problems
+
+
+def _refuse_uncalibrated(path: str) -> None:
+    """The calib.txt of ``rectify --uncalibrated`` has no baseline (and only a guessed focal
+    length): no depth can come from it."""
+    if Path(path).suffix.lower() == ".txt":
+        from ..io.middlebury import read_calib_txt
+
+        if read_calib_txt(path).extra.get("rectification") == "uncalibrated":
+            raise DataError(f"{path}: written by rectify --uncalibrated (no baseline); triangulate needs a "
+                            "calibration: calibrate the rig and rectify with --calib")
 
 
 def triangulate_item(item: WorkItem) -> dict:
@@ -132,6 +144,7 @@ def triangulate_item(item: WorkItem) -> dict:
                                write_depth, write_depth_png16_mm)
 
     o = item.options
+    _refuse_uncalibrated(item.inputs["calibration"])
     disp = read_disparity(item.inputs["disparity"], scale=o.get("scale"))
     calib = load_calibration(item.inputs["calibration"])
     geom = geometry_from_calibration(calib, use_q=o.get("use_q", False))

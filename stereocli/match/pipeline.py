@@ -51,6 +51,9 @@ from .state import MatchState, Wants
 #: Use fused cost + WTA kernels when the pipeline allows it (False forces the volume path).
 FUSED = True
 
+#: The config of the pair this process prepared last (:func:`last_config`).
+_last_config: list = [None]
+
 GIB = 1024.0**3
 #: Interpreter, numpy/numba/OpenCV libraries and compiled kernels (measured RSS before matching).
 RUNTIME_BASE = 0.35 * GIB
@@ -200,6 +203,7 @@ def prepare(
     if ndisp < 1:
         raise DataError(f"ndisp must be at least 1 (got {ndisp})")
     _set_threads(config.runtime.threads)
+    _last_config[0] = config
     shape = left.shape[:2]
     timings: dict[str, float] = {}
     refinements = _refinements(config, keep_invalid)
@@ -458,6 +462,12 @@ def _timed(timings: dict, key: str, func, state: MatchState, params) -> None:
     t0 = time.perf_counter()
     func(state, params)
     timings[key] = timings.get(key, 0.0) + time.perf_counter() - t0
+
+
+def last_config() -> PipelineConfig | None:
+    """The config of the pair this process prepared last (what :func:`stereocli.match.warmup.compile_aside`
+    compiles the map stages of when the run's first kernel compiles)."""
+    return _last_config[0]
 
 
 def _set_threads(threads: int) -> None:

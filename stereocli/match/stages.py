@@ -1,16 +1,41 @@
-"""Imports every module that registers stages, so the registry is complete.
+"""The stage catalogue: every built-in stage and the module that registers it.
 
-Add a line here when you add a stage module.
+Nothing is imported here: :func:`stereocli.registry.declare` records the table, and the
+registry imports a module the first time one of its stages is asked for, so a run loads only
+the stage modules (and their compiled kernels) its config names; listing the stages
+(``stereocli stages``) imports them all. ``tests/test_config.py`` checks that the table and the
+registrations agree. Add your stage here when you add one.
 """
 
-from . import preprocess  # noqa: F401
-from . import cost  # noqa: F401
-from . import cost_mi  # noqa: F401
-from . import aggregate  # noqa: F401
-from .optimize import wta  # noqa: F401
-from .optimize import sgm  # noqa: F401
-from . import refine  # noqa: F401
-from .optimize import dp, so, bp, gc, coop  # noqa: F401,E401
-from . import refine_segment  # noqa: F401
-from . import refine_local  # noqa: F401
-from . import refine_voting  # noqa: F401
+from __future__ import annotations
+
+from .. import registry
+
+#: module -> {kind: stage names it registers}
+CATALOGUE: dict[str, dict[str, tuple[str, ...]]] = {
+    "stereocli.match.preprocess": {"preprocess": ("none", "log", "mean_removal", "bilateral_subtraction", "xsobel",
+                                                  "histogram_matching")},
+    "stereocli.match.cost": {"cost": ("ad", "tad", "sd", "sad", "stad", "ssd", "ncc", "zncc", "gradient",
+                                      "color_gradient", "bt", "census", "rank", "ad_census", "ordinal")},
+    "stereocli.match.cost_mi": {"cost": ("hmi",)},
+    "stereocli.match.aggregate": {"aggregation": ("none", "box", "shiftable", "multiple_windows", "variable_window",
+                                                  "cross", "adaptive_weights", "segment_support", "fast_bilateral",
+                                                  "locally_consistent", "guided_filter")},
+    "stereocli.match.optimize.wta": {"optimizer": ("wta",)},
+    "stereocli.match.optimize.sgm": {"optimizer": ("sgm",)},
+    "stereocli.match.optimize.dp": {"optimizer": ("dp",)},
+    "stereocli.match.optimize.so": {"optimizer": ("so",)},
+    "stereocli.match.optimize.bp": {"optimizer": ("bp",)},
+    "stereocli.match.optimize.gc": {"optimizer": ("gc",)},
+    "stereocli.match.optimize.coop": {"optimizer": ("coop",)},
+    "stereocli.match.refine": {"refinement": ("subpixel", "lr_check", "median", "fill", "uniqueness", "confidence",
+                                              "speckle", "interpolate", "bilateral", "plane_smooth")},
+    "stereocli.match.refine_segment": {"refinement": ("local_consistency", "geodesic_vote", "plane_fit")},
+    "stereocli.match.refine_local": {"refinement": ("single_matching_phase", "texture", "fill_weighted_median")},
+    "stereocli.match.refine_voting": {"refinement": ("region_voting", "proper_interpolation")},
+    "stereocli.match.refine_slanted": {"refinement": ("slanted_patchmatch",)},
+}
+
+for _module, _kinds in CATALOGUE.items():
+    for _kind, _names in _kinds.items():
+        registry.declare(_module, _kind, _names)

@@ -1,6 +1,8 @@
-"""Rectification: maps from a calibration, rectified pairs, valid masks, calib.txt, check images."""
+"""Rectification: maps from a calibration, rectified pairs, valid masks, calib.txt, check images;
+homographies estimated from the pairs themselves when there is no calibration."""
 
 from .maps import RectifyMaps, Rectification, build_maps, rectified_calibration, rectify_images, stereo_rectify
+from .uncalibrated import UncalibratedRectification, disparity_to_original, estimate_rectification, warp_pair
 
-__all__ = ["RectifyMaps", "Rectification", "build_maps", "rectified_calibration", "rectify_images",
-           "stereo_rectify"]
+__all__ = ["RectifyMaps", "Rectification", "UncalibratedRectification", "build_maps", "disparity_to_original",
+           "estimate_rectification", "rectified_calibration", "rectify_images", "stereo_rectify", "warp_pair"]

@@ -155,15 +155,17 @@ def estimate_ndisp(rect: Rectification, *, min_depth: float | None = None, width
     return int(max(16, min(16 * math.ceil(max(d, 1) / 16), 16 * math.ceil(w / 16))))
 
 
-def check_image(left: np.ndarray, right: np.ndarray, rect: Rectification, *, spacing: int = 32) -> np.ndarray:
-    """Side-by-side 8-bit RGB preview with horizontal lines every ``spacing`` px and ROI boxes."""
+def check_image(left: np.ndarray, right: np.ndarray, rect: Rectification | None = None, *, spacing: int = 32,
+                rois: tuple[tuple[int, int, int, int], tuple[int, int, int, int]] | None = None) -> np.ndarray:
+    """Side-by-side 8-bit RGB preview with horizontal lines every ``spacing`` px and boxes round
+    the all-valid areas (``rect``'s ROIs, or ``rois`` = (left, right) (x, y, w, h) boxes)."""
     def rgb8(im: np.ndarray) -> np.ndarray:
         if im.dtype != np.uint8:
             im = cv2.convertScaleAbs(im, alpha=255.0 / max(float(im.max()), 1.0))
         return cv2.cvtColor(im, cv2.COLOR_GRAY2RGB) if im.ndim == 2 else im.copy()
 
     a, b = rgb8(left), rgb8(right)
-    for im, roi in ((a, rect.roi1), (b, rect.roi2)):
+    for im, roi in zip((a, b), rois or (rect.roi1, rect.roi2)):
         x, y, w, h = roi
         if w > 0 and h > 0:
             cv2.rectangle(im, (x, y), (x + w - 1, y + h - 1), (0, 255, 0), 1)

@@ -33,6 +33,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from . import prange_only
 from .winners import _subpixel_offset
 
 INF = np.float32(np.inf)
@@ -259,7 +260,7 @@ def sad_wta(left: np.ndarray, right: np.ndarray, right_valid: np.ndarray, min_di
 # stereocli.match.refine_local) -------------------------------------------------------------
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=prange_only())
 def subpixel_winner(wdisp: np.ndarray, wcosts: np.ndarray, disp: np.ndarray, min_disp: int, ndisp: int,
                     equiangular: bool, left: bool = True):
     """:func:`~stereocli.match.kernels.winners.subpixel_left` on the winner costs.

@@ -5,8 +5,10 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from . import prange_only
 
-@njit(cache=True, parallel=True)
+
+@njit(cache=True, parallel=prange_only())
 def luma(img: np.ndarray) -> np.ndarray:
     """(H, W, 3) float32 RGB -> (H, W) float32 luma 0.299 R + 0.587 G + 0.114 B."""
     h, w = img.shape[0], img.shape[1]
@@ -17,7 +19,7 @@ def luma(img: np.ndarray) -> np.ndarray:
     return out
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=prange_only())
 def half_resolution(image: np.ndarray) -> np.ndarray:
     """2×2 mean of an (H, W) or (H, W, C) float32 image: (ceil(H/2), ceil(W/2)[, C]); an odd
     last row/column averages what it has. (Compiled rather than cv2.resize: OpenCV's worker

@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from . import prange_only
+
 INF = np.float32(np.inf)
 
 
@@ -18,7 +20,7 @@ def lr_check(disp_left: np.ndarray, disp_right: np.ndarray, max_diff: float) -> 
     return lr_check_onto(disp_left, disp_right, max_diff, disp_left)
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=prange_only())
 def lr_check_onto(disp_left: np.ndarray, disp_right: np.ndarray, max_diff: float,
                   target: np.ndarray) -> np.ndarray:
     """A copy of ``target`` (H, W) with +inf where the pair ``disp_left``/``disp_right`` fails
@@ -41,7 +43,7 @@ def lr_check_onto(disp_left: np.ndarray, disp_right: np.ndarray, max_diff: float
     return out
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=prange_only())
 def fill_background(disp: np.ndarray) -> np.ndarray:
     """Fill invalid pixels along each row with the smaller (background) of the nearest valid
     disparities to the left and right; rows with no valid pixel stay invalid.
@@ -73,7 +75,7 @@ def fill_background(disp: np.ndarray) -> np.ndarray:
     return out
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=prange_only())
 def disparity_bins(disp: np.ndarray, min_disp: int, ndisp: int) -> np.ndarray:
     """(H, W) int32 1-px bins ``round(d) − min_disp``; −1 for invalid (+inf) disparities and
     those outside ``[min_disp, min_disp + ndisp)``."""

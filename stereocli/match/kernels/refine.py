@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from . import prange_only
 from .aggregation import channel_planes
 
 INF = np.float32(np.inf)
@@ -270,7 +271,7 @@ def interpolate_holes(disp: np.ndarray, label: np.ndarray, max_dist: int) -> np.
     return _fill_from_nearest(disp, label, value, dist, int(limit))
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=prange_only())
 def _median_valid_where(disp: np.ndarray, radius: int, todo: np.ndarray, out: np.ndarray) -> None:
     # General case at the pixels flagged in ``todo``: median of the finite values of the
     # window clipped to the image (insertion sort in a fixed buffer); the mean of the two
@@ -346,7 +347,7 @@ def joint_bilateral(disp, guide, radius: int, sigma_space: float, sigma_color: f
     return out
 
 
-@njit(cache=True, parallel=True, error_model="numpy")
+@njit(cache=True, parallel=prange_only(), error_model="numpy")
 def _line_fit_pass(disp, image, radius: int, vertical: bool, sigma_space: float, color_range: float,
                    gate: float) -> np.ndarray:
     # One 1-D pass of plane_smooth, along rows (vertical=False) or columns. Loops run over

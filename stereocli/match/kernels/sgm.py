@@ -40,6 +40,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from . import prange_only
+
 INF = np.float32(np.inf)
 INT16_MAX = 32767
 
@@ -323,7 +325,7 @@ def stripe_pass(stripe: int, j: int, h: int):
     return forward, h - min(h, y1 + STRIPE_OVERLAP), h - y0, h - y1
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=prange_only())
 def sgm_two_pass(cq, mul: int, guide, total, dirs, p1: int, p2: int, gamma: float, min_disp: int,
                  want_right: bool):
     """Both passes per row stripe (module docstring); returns left and right WTA disparities.

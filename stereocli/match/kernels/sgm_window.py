@@ -40,6 +40,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from . import prange_only
 from .sgm import DOWN_DIRECTIONS, GAP, INF, INT16_MAX, STRIPES, _min_packed, _penalty2, stripe_pass
 
 #: Sum value of a hypothesis outside a pixel's window in an expanded volume (:func:`expand_sums`).
@@ -118,6 +119,130 @@ def _put_costs(costs, y: int, x: int, c0, c1, c2) -> None:
 
 
 @njit(cache=True)
+def _horizontal_row(cq, mul, pens, total, off_row, lo_row, hi_row, rlo_row, rhi_row, y: int, forward: bool, p1: int,
+                    hbuf, blank, sentinel, keep, h_lo0: int, h_hi0: int, h_lo1: int, h_hi1: int):
+    """The horizontal path of row ``y`` (from the left, or from the right when not ``forward``),
+    its sums written (``keep`` 0) or added into ``total``. ``hbuf`` holds the two buffers used in
+    turn and ``h_lo0 .. h_hi1`` the runs they hold, carried from row to row (returned)."""
+    w = lo_row.shape[0]
+    hmin = 0
+    for j in range(w):
+        x = j if forward else w - 1 - j
+        lo = lo_row[x]
+        hi = hi_row[x]
+        rlo = rlo_row[x]
+        rhi = rhi_row[x]
+        base = np.uint64(off_row[x] - rlo)
+        if j % 2 == 0:
+            olo, ohi = h_lo0, h_hi0
+            h_lo0, h_hi0 = rlo, rhi
+            cur, prev = hbuf[0], hbuf[1]
+        else:
+            olo, ohi = h_lo1, h_hi1
+            h_lo1, h_hi1 = rlo, rhi
+            cur, prev = hbuf[1], hbuf[0]
+        if j == 0:
+            hmin = _start(cq, mul, blank, p1, cur, olo, ohi, total, base, base, rlo, rhi, lo, hi, sentinel, keep)
+        else:
+            # P2 between x and its predecessor x − s, stored at the right one of the two.
+            pen = pens[0, y, x] if forward else pens[0, y, x + 1]
+            hmin = _step(cq, mul, prev, hmin, p1, pen, cur, olo, ohi, total, base, base, rlo, rhi, lo, hi,
+                         sentinel, keep)
+    return h_lo0, h_hi0, h_lo1, h_hi1
+
+
+@njit(cache=True)
+def _direction_row(cq, mul, pens, sums, off_row, lo_row, hi_row, rlo_row, rhi_row, k: int, dy: int, dx: int,
+                   y: int, i: int, i0: int, forward: bool, p1: int, lbuf, lslot, mins, blank, sentinel, shift) -> None:
+    """Row ``y`` (pass row ``i``) of the path from the rows above (below), direction ``k`` =
+    (``dy``, ``dx``); the sums are added into ``sums`` at the row's offsets minus ``shift``."""
+    w = lo_row.shape[0]
+    s = 1 if forward else -1
+    ring = i % 3
+    ip = i - dy
+    pr = ip % 3
+    yp = y - s * dy
+    keep = np.uint16(0xFFFF)
+    for x in range(w):
+        xp = x - s * dx
+        lo = lo_row[x]
+        hi = hi_row[x]
+        rlo = rlo_row[x]
+        rhi = rhi_row[x]
+        base = np.uint64(off_row[x] - rlo)
+        olo = lslot[k, ring, x, 0]
+        ohi = lslot[k, ring, x, 1]
+        if ip < i0 or xp < 0 or xp >= w:
+            mins[k, ring, x] = _start(cq, mul, blank, p1, lbuf[k, ring, x], olo, ohi, sums, base,
+                                      base - shift, rlo, rhi, lo, hi, sentinel, keep)
+        else:
+            pen = pens[k + 1, y, x] if forward else pens[k + 1, yp, xp]
+            mins[k, ring, x] = _step(cq, mul, lbuf[k, pr, xp], mins[k, pr, xp], p1, pen,
+                                     lbuf[k, ring, x], olo, ohi, sums, base, base - shift, rlo, rhi, lo, hi,
+                                     sentinel, keep)
+        lslot[k, ring, x, 0] = rlo
+        lslot[k, ring, x, 1] = rhi
+
+
+@njit(cache=True)
+def _winners_row(total, nd: int, off_row, lo_row, hi_row, rlo_row, y: int, min_disp: int, disp, costs, second,
+                 rbest, want_right: bool, want_second: bool) -> None:
+    """The left winners of row ``y`` (and the right view's best so far in ``rbest``), with the
+    sums around them and, if ``want_second``, the best sum beyond them."""
+    w = lo_row.shape[0]
+    for x in range(w):
+        lo = lo_row[x]
+        hi = hi_row[x]
+        base = np.uint64(off_row[x] - rlo_row[x])
+        k0 = max(0, x - min_disp - (w - 1), lo)
+        k1 = min(nd - 1, x - min_disp, hi - 1)
+        if k1 < k0:
+            disp[y, x] = INF
+            continue
+        # Smallest (sum, k) packed in a uint32, both views in one pass (:func:`.sgm._min_packed`;
+        # w − 1 − x + min_disp may be negative: the unsigned sum wraps to the right slot).
+        lbest = _min_packed(total, base, k0, k1, rbest, np.uint64(w - 1 - x + min_disp), want_right)
+        kb = int(lbest & np.uint32(0xFFFF))
+        vmin = lbest >> np.uint32(16)
+        disp[y, x] = np.float32(min_disp + kb)
+        c1 = np.float32(vmin)
+        c0 = _sum_at(total, base, k0, k1 + 1, kb - 1)
+        c2 = _sum_at(total, base, k0, k1 + 1, kb + 1)
+        _put_costs(costs, y, x, c0, c1, c2)
+        if want_second:
+            sec = INF
+            for k in range(k0, k1 + 1):
+                if k < kb - 1 or k > kb + 1:
+                    sec = min(sec, np.float32(total[base + np.uint64(k)]))
+            second[y, x] = sec
+
+
+@njit(cache=True)
+def _right_row(total, off_row, lo_row, hi_row, rlo_row, y: int, min_disp: int, disp_r, costs_r, rbest,
+               want_right_costs: bool) -> None:
+    """The right winners of row ``y`` from ``rbest`` and, if ``want_right_costs``, their sums."""
+    w = lo_row.shape[0]
+    for xr in range(w):
+        v = rbest[w - 1 - xr]
+        if v == 0xFFFFFFFF:
+            continue
+        kb = int(v & np.uint32(0xFFFF))
+        disp_r[y, xr] = np.float32(min_disp + kb)
+        if not want_right_costs:
+            continue
+        c1 = np.float32(v >> np.uint32(16))
+        # Right-view neighbours along the diagonal: S(x − 1, k − 1) and S(x + 1, k + 1).
+        x = xr + min_disp + kb
+        c0 = np.float32(-1.0)
+        c2 = np.float32(-1.0)
+        if x - 1 >= 0:
+            c0 = _sum_at(total, np.uint64(off_row[x - 1] - rlo_row[x - 1]), lo_row[x - 1], hi_row[x - 1], kb - 1)
+        if x + 1 < w:
+            c2 = _sum_at(total, np.uint64(off_row[x + 1] - rlo_row[x + 1]), lo_row[x + 1], hi_row[x + 1], kb + 1)
+        _put_costs(costs_r, y, xr, c0, c1, c2)
+
+
+@njit(cache=True)
 def _pass_rows(cq, nd: int, mul, pens, total, offset, win_lo, win_hi, run_lo, run_hi, dirs, forward: bool, i0: int,
                i1: int, i_keep: int, p1: int, lbuf, lslot, mins, hbuf, scratch, disp, disp_r, costs,
                costs_r, second, rbest, min_disp: int) -> None:
@@ -142,23 +267,22 @@ def _pass_rows(cq, nd: int, mul, pens, total, offset, win_lo, win_hi, run_lo, ru
     """
     h, w = win_lo.shape
     nk = dirs.shape[0]
-    s = 1 if forward else -1
     want_right = disp_r.shape[0] > 0
     want_right_costs = costs_r.shape[0] > 0
     want_second = second.shape[0] > 0
     sentinel = np.int16(INT16_MAX - p1)  # sentinel + P1 still fits int16; never selected
     hbuf[:] = sentinel
     blank = np.full(nd + 4, sentinel, np.int16)  # the "predecessor" of a path's first pixel
-    # Windows the two horizontal buffers hold (locals: per-thread arrays written every pixel
-    # would share cache lines between the threads).
-    h_lo0 = h_hi0 = h_lo1 = h_hi1 = 0
+    # Runs the two horizontal buffers hold (locals: per-thread arrays written every pixel would
+    # share cache lines between the threads). Each row's paths, winners and right view are
+    # functions of their own, which keeps each loop's state in registers (as in .sgm) and the
+    # kernel's compile time down.
+    h_lo0 = h_hi0 = h_lo1 = h_hi1 = np.int64(0)  # (not a literal 0: one compiled signature)
     # In the forward pass the horizontal path is the first to reach each pixel: it overwrites
     # the sums (no separate zeroing pass over them).
     hkeep = np.uint16(0) if forward else np.uint16(0xFFFF)
-    keep = np.uint16(0xFFFF)
     for i in range(i0, i1):
         y = i if forward else h - 1 - i
-        ring = i % 3
         lo_row = win_lo[y]
         hi_row = win_hi[y]
         rlo_row = run_lo[y]
@@ -167,105 +291,26 @@ def _pass_rows(cq, nd: int, mul, pens, total, offset, win_lo, win_hi, run_lo, ru
         kept = i >= i_keep
         sums = total if kept else scratch
         shift = np.uint64(0) if kept else np.uint64(off_row[0])  # a warm row's sums from scratch[0]
-        hmin = 0
-        for j in range(w if kept else 0):
-            x = j if forward else w - 1 - j
-            lo = lo_row[x]
-            hi = hi_row[x]
-            rlo = rlo_row[x]
-            rhi = rhi_row[x]
-            base = np.uint64(off_row[x] - rlo)
-            if j % 2 == 0:
-                olo, ohi = h_lo0, h_hi0
-                h_lo0, h_hi0 = rlo, rhi
-                cur, prev = hbuf[0], hbuf[1]
-            else:
-                olo, ohi = h_lo1, h_hi1
-                h_lo1, h_hi1 = rlo, rhi
-                cur, prev = hbuf[1], hbuf[0]
-            if j == 0:
-                hmin = _start(cq, mul, blank, p1, cur, olo, ohi, total, base, base, rlo, rhi, lo, hi, sentinel, hkeep)
-            else:
-                # P2 between x and its predecessor x − s, stored at the right one of the two.
-                pen = pens[0, y, x] if forward else pens[0, y, x + 1]
-                hmin = _step(cq, mul, prev, hmin, p1, pen, cur, olo, ohi, total, base, base, rlo, rhi, lo, hi,
-                             sentinel, hkeep)
+        if kept:
+            h_lo0, h_hi0, h_lo1, h_hi1 = _horizontal_row(cq, mul, pens, total, off_row, lo_row, hi_row, rlo_row,
+                                                         rhi_row, y, forward, p1, hbuf, blank, sentinel, hkeep,
+                                                         h_lo0, h_hi0, h_lo1, h_hi1)
         for k in range(nk):
-            ip = i - dirs[k, 0]
-            pr = ip % 3
-            yp = y - s * dirs[k, 0]
-            for x in range(w):
-                xp = x - s * dirs[k, 1]
-                lo = lo_row[x]
-                hi = hi_row[x]
-                rlo = rlo_row[x]
-                rhi = rhi_row[x]
-                base = np.uint64(off_row[x] - rlo)
-                olo = lslot[k, ring, x, 0]
-                ohi = lslot[k, ring, x, 1]
-                if ip < i0 or xp < 0 or xp >= w:
-                    mins[k, ring, x] = _start(cq, mul, blank, p1, lbuf[k, ring, x], olo, ohi, sums, base,
-                                              base - shift, rlo, rhi, lo, hi, sentinel, keep)
-                else:
-                    pen = pens[k + 1, y, x] if forward else pens[k + 1, yp, xp]
-                    mins[k, ring, x] = _step(cq, mul, lbuf[k, pr, xp], mins[k, pr, xp], p1, pen,
-                                             lbuf[k, ring, x], olo, ohi, sums, base, base - shift, rlo, rhi, lo, hi,
-                                             sentinel, keep)
-                lslot[k, ring, x, 0] = rlo
-                lslot[k, ring, x, 1] = rhi
+            _direction_row(cq, mul, pens, sums, off_row, lo_row, hi_row, rlo_row, rhi_row, k, dirs[k, 0], dirs[k, 1],
+                           y, i, i0, forward, p1, lbuf, lslot, mins, blank, sentinel, shift)
         if forward or not kept:
             continue
         # The row's sums are complete: winners among hypotheses inside the window whose right
         # pixel x − d lies inside the image, for both views in one pass over each window.
         if want_right:
             rbest[:] = 0xFFFFFFFF
-        for x in range(w):
-            lo = lo_row[x]
-            hi = hi_row[x]
-            base = np.uint64(off_row[x] - rlo_row[x])
-            k0 = max(0, x - min_disp - (w - 1), lo)
-            k1 = min(nd - 1, x - min_disp, hi - 1)
-            if k1 < k0:
-                disp[y, x] = INF
-                continue
-            # Smallest (sum, k) packed in a uint32, both views in one pass (:func:`.sgm._min_packed`;
-            # w − 1 − x + min_disp may be negative: the unsigned sum wraps to the right slot).
-            lbest = _min_packed(total, base, k0, k1, rbest, np.uint64(w - 1 - x + min_disp), want_right)
-            kb = int(lbest & np.uint32(0xFFFF))
-            vmin = lbest >> np.uint32(16)
-            disp[y, x] = np.float32(min_disp + kb)
-            c1 = np.float32(vmin)
-            c0 = _sum_at(total, base, k0, k1 + 1, kb - 1)
-            c2 = _sum_at(total, base, k0, k1 + 1, kb + 1)
-            _put_costs(costs, y, x, c0, c1, c2)
-            if want_second:
-                sec = INF
-                for k in range(k0, k1 + 1):
-                    if k < kb - 1 or k > kb + 1:
-                        sec = min(sec, np.float32(total[base + np.uint64(k)]))
-                second[y, x] = sec
+        _winners_row(total, nd, off_row, lo_row, hi_row, rlo_row, y, min_disp, disp, costs, second, rbest,
+                     want_right, want_second)
         if want_right:
-            for xr in range(w):
-                v = rbest[w - 1 - xr]
-                if v == 0xFFFFFFFF:
-                    continue
-                kb = int(v & np.uint32(0xFFFF))
-                disp_r[y, xr] = np.float32(min_disp + kb)
-                if not want_right_costs:
-                    continue
-                c1 = np.float32(v >> np.uint32(16))
-                # Right-view neighbours along the diagonal: S(x − 1, k − 1) and S(x + 1, k + 1).
-                x = xr + min_disp + kb
-                c0 = np.float32(-1.0)
-                c2 = np.float32(-1.0)
-                if x - 1 >= 0:
-                    c0 = _sum_at(total, np.uint64(off_row[x - 1] - rlo_row[x - 1]), lo_row[x - 1], hi_row[x - 1], kb - 1)
-                if x + 1 < w:
-                    c2 = _sum_at(total, np.uint64(off_row[x + 1] - rlo_row[x + 1]), lo_row[x + 1], hi_row[x + 1], kb + 1)
-                _put_costs(costs_r, y, xr, c0, c1, c2)
+            _right_row(total, off_row, lo_row, hi_row, rlo_row, y, min_disp, disp_r, costs_r, rbest, want_right_costs)
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=prange_only())
 def penalty_maps(guide, dirs, p1: int, p2: int, gamma: float):
     """(K + 1, H, W) int16: the adaptive P2 between each pixel and its predecessor along the
     horizontal path (index 0, predecessor (y, x − 1)) and each direction (dy, dx) of ``dirs``
@@ -289,7 +334,7 @@ def penalty_maps(guide, dirs, p1: int, p2: int, gamma: float):
     return pens
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=prange_only())
 def sgm_window_two_pass(cq, nd: int, mul: int, pens, total, offset, win_lo, win_hi, run_lo, run_hi, dirs, p1: int,
                         min_disp: int, want_right: bool, want_second: bool, want_right_costs: bool):
     """Both passes per row stripe over the windows (the row stripes of :mod:`.sgm`); returns
@@ -353,7 +398,7 @@ def gather_runs(cq, run_lo, run_hi, offset, n: int):
     return out
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=prange_only())
 def _runs_and_offsets(lo, hi, nd: int, step: int):
     # Runs on the grid of ``step`` around each window [lo, hi) and their row-major offsets in
     # the flat arrays (each pixel's run follows the previous pixel's) in one compiled pass;
@@ -441,37 +486,55 @@ def sgm_window(costs: np.ndarray, runs, nd: int, guide: np.ndarray, paths: int, 
             "second": second if want_second else None, "total": total}
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True)
+def _row_min_max(row, rmin, rmax, radius: int) -> None:
+    # Min and max of the finite values of ``row`` within ``radius`` of each x.
+    w = row.shape[0]
+    for x in range(w):
+        a = np.float32(np.inf)
+        b = np.float32(-np.inf)
+        for xx in range(max(0, x - radius), min(w, x + radius + 1)):
+            v = row[xx]
+            if np.isfinite(v):
+                a = min(a, v)
+                b = max(b, v)
+        rmin[x] = a
+        rmax[x] = b
+
+
+@njit(cache=True)
+def _column_min_max(rmin, rmax, lo, hi, y: int, radius: int) -> None:
+    # Row y of the column pass: min (max) of the rows of ``rmin`` (``rmax``) within ``radius``.
+    h, w = rmin.shape
+    y0 = max(0, y - radius)
+    for x in range(w):
+        lo[x] = rmin[y0, x]
+        hi[x] = rmax[y0, x]
+    for yy in range(y0 + 1, min(h, y + radius + 1)):
+        for x in range(w):
+            lo[x] = min(lo[x], rmin[yy, x])
+            hi[x] = max(hi[x], rmax[yy, x])
+
+
+@njit(cache=True, parallel=prange_only())
 def square_min_max(coarse: np.ndarray, radius: int):
     """Min and max of the finite values of ``coarse`` (2-D float32) over the (2r + 1)² square
-    around each pixel (separable: rows, then columns); +inf / −inf where none is finite."""
+    around each pixel (separable: rows, then columns); +inf / −inf where none is finite.
+    (The loops are functions of their own: numba's parallel passes then see two small loops,
+    and the kernel compiles several times faster.)"""
     h, w = coarse.shape
     rmin = np.empty((h, w), np.float32)
     rmax = np.empty((h, w), np.float32)
     for y in prange(h):
-        for x in range(w):
-            a = np.float32(np.inf)
-            b = np.float32(-np.inf)
-            for xx in range(max(0, x - radius), min(w, x + radius + 1)):
-                v = coarse[y, xx]
-                if np.isfinite(v):
-                    a = min(a, v)
-                    b = max(b, v)
-            rmin[y, x] = a
-            rmax[y, x] = b
+        _row_min_max(coarse[y], rmin[y], rmax[y], radius)
     lo = np.empty((h, w), np.float32)
     hi = np.empty((h, w), np.float32)
     for y in prange(h):
-        lo[y] = rmin[max(0, y - radius)]
-        hi[y] = rmax[max(0, y - radius)]
-        for yy in range(max(0, y - radius) + 1, min(h, y + radius + 1)):
-            for x in range(w):
-                lo[y, x] = min(lo[y, x], rmin[yy, x])
-                hi[y, x] = max(hi[y, x], rmax[yy, x])
+        _column_min_max(rmin, rmax, lo[y], hi[y], np.int64(y), radius)  # (one signature: y may be unsigned)
     return lo, hi
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=prange_only())
 def upsample_windows(nmin, nmax, h: int, w: int, min_disp: int, ndisp: int, margin: int):
     """(H, W) int32 ``lo``/``hi`` volume indices from the coarse range [nmin, nmax] of each
     pixel's coarse parent (y // 2, x // 2): doubled, ± ``margin``; the full range where the

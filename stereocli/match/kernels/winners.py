@@ -10,6 +10,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from . import prange_only
+
 INF = np.float32(np.inf)
 
 
@@ -90,7 +92,7 @@ def _subpixel_offset(a0: float, a1: float, a2: float, equiangular: bool) -> floa
     return off
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=prange_only())
 def subpixel_left(cost: np.ndarray, disp: np.ndarray, min_disp: int, equiangular: bool) -> np.ndarray:
     """Refine integer left disparities to sub-pixel by fitting the costs at d-1, d, d+1.
 

@@ -37,6 +37,8 @@ from ..state import MatchState, Wants, WinnerCosts
 
 #: Largest value of the aggregated volume (``state.cost_max`` after SGM); sums stay below it.
 S_MAX = 65535
+#: Most disparities the kernels handle (the winner's index is packed in 16 bits).
+MAX_NDISP = 65535
 
 
 @dataclass(frozen=True)
@@ -246,4 +248,7 @@ def sgm(state: MatchState, p: SGMParams, cost=None) -> None:
     pixel's hypotheses to the range of its coarse neighbourhood (± ``margin``), which is
     faster and, on MiddEval3, as accurate (see the module docstring).
     """
+    if state.ndisp > MAX_NDISP:
+        raise ConfigError(f"optimizer.sgm: searches at most {MAX_NDISP} disparities (ndisp={state.ndisp}); "
+                          "lower ndisp or choose another optimizer")
     run_sgm(state, p, cost)

@@ -1,0 +1,213 @@
+"""Compiled kernels of the ``slanted_patchmatch`` refinement: census codes on a horizontally
+upsampled image, per-pixel plane fits to a disparity map, the slanted-window matching cost of
+a plane and the red-black PatchMatch sweeps over per-pixel planes.
+
+A plane is three float64 numbers ``(a, b, c)``: disparity ``d(x, y) = a·x + b·y + c`` in image
+coordinates (pixels). The right image is read through an upsampled copy ``right_up`` whose
+column ``j`` holds the right image at ``x = (j + 0.5) / up − 0.5`` (OpenCV's ``resize``
+convention), so a left pixel ``x`` with disparity ``d`` matches column
+``floor((x − d + 0.5) · up)``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+from . import prange_only
+from .census import _popcount64
+
+
+@njit(cache=True, parallel=prange_only())
+def census_codes(image: np.ndarray, half_h: int, half_w: int, step: int) -> np.ndarray:
+    """(H, W) uint64 census codes: bit set where the neighbour ``(dy, dx·step)`` is darker than
+    the centre, for ``|dy| <= half_h``, ``|dx| <= half_w`` (centre skipped, borders clamped).
+
+    ``step`` is the column spacing of one pixel: 1 on the left image, ``up`` on the right image
+    upsampled ``up`` times along rows, so both codes compare the same neighbourhood."""
+    h, w = image.shape
+    out = np.zeros((h, w), np.uint64)
+    for y in prange(h):
+        for x in range(w):
+            centre = image[y, x]
+            code = np.uint64(0)
+            bit = np.uint64(0)
+            for dy in range(-half_h, half_h + 1):
+                yy = min(max(y + dy, 0), h - 1)
+                for dx in range(-half_w, half_w + 1):
+                    if dy == 0 and dx == 0:
+                        continue
+                    xx = min(max(x + dx * step, 0), w - 1)
+                    if image[yy, xx] < centre:
+                        code |= np.uint64(1) << bit
+                    bit += np.uint64(1)
+            out[y, x] = code
+    return out
+
+
+@njit(cache=True, parallel=prange_only())
+def fit_planes(disp: np.ndarray, guide: np.ndarray, radius: int, weights: np.ndarray, gate: float, band: float):
+    """Each valid pixel's plane: weighted least squares through the neighbours within
+    ``radius`` px whose disparity is within ``gate`` px of its own, weight
+    ``weights[|guide_q − guide_p|]`` (``guide``: int grey levels).
+
+    Returns (H, W) float64 ``a``, ``b``, ``c`` (``d = a·x + b·y + c``); a pixel whose
+    neighbours do not fix a plane (a line of them, or too few) gets the fronto-parallel plane
+    through its own disparity, and an invalid pixel ``a = b = 0``, ``c = +inf``. The plane's
+    value at the pixel is clamped to within ``band`` px of its input disparity."""
+    h, w = disp.shape
+    pa = np.zeros((h, w), np.float64)
+    pb = np.zeros((h, w), np.float64)
+    pc = np.empty((h, w), np.float64)
+    for y in prange(h):
+        for x in range(w):
+            d0 = disp[y, x]
+            pc[y, x] = d0
+            if not np.isfinite(d0):
+                continue
+            g0 = guide[y, x]
+            s0 = su = sv = suu = suv = svv = sd = sud = svd = 0.0
+            for yy in range(max(0, y - radius), min(h, y + radius + 1)):
+                v = float(yy - y)
+                for xx in range(max(0, x - radius), min(w, x + radius + 1)):
+                    dq = disp[yy, xx] - d0
+                    if not abs(dq) <= gate:
+                        continue
+                    wq = weights[abs(guide[yy, xx] - g0)]
+                    u = float(xx - x)
+                    s0 += wq
+                    su += wq * u
+                    sv += wq * v
+                    suu += wq * u * u
+                    suv += wq * u * v
+                    svv += wq * v * v
+                    sd += wq * dq
+                    sud += wq * u * dq
+                    svd += wq * v * dq
+            # Cramer's rule on [[suu suv su] [suv svv sv] [su sv s0]] (a b c)' = (sud svd sd)'.
+            det = suu * (svv * s0 - sv * sv) - suv * (suv * s0 - sv * su) + su * (suv * sv - svv * su)
+            if not det > 1e-6 * s0 * s0 * s0:
+                continue
+            a = (sud * (svv * s0 - sv * sv) - suv * (svd * s0 - sv * sd) + su * (svd * sv - svv * sd)) / det
+            b = (suu * (svd * s0 - sv * sd) - sud * (suv * s0 - sv * su) + su * (suv * sd - svd * su)) / det
+            c = (suu * (svv * sd - sv * svd) - suv * (suv * sd - sv * sud) + su * (suv * svd - svv * sud)) / det
+            pa[y, x] = a
+            pb[y, x] = b
+            pc[y, x] = d0 + min(max(c, -band), band) - a * x - b * y
+    return pa, pb, pc
+
+
+@njit(cache=True, inline="always")
+def plane_cost(y: int, x: int, a: float, b: float, c: float, codes_left, codes_right, guide, weights, prior,
+               up: int, radius: int, stride: int, tau: float, lam: float, cap: float) -> float:
+    """Slanted-window cost of plane ``(a, b, c)`` at pixel (y, x): over the window (every
+    ``stride``-th pixel within ``radius``), the mean, weighted by ``weights[|Δguide|]``, of
+    ``min(Hamming(census_left, census_right at x − d), tau) + lam·min(|d − prior|, cap)``
+    where ``d`` is the plane's disparity at the window pixel (the prior term only where
+    ``prior`` is finite; a match outside the right image costs ``tau``)."""
+    h, w = codes_left.shape
+    wu = codes_right.shape[1]
+    g0 = guide[y, x]
+    total = 0.0
+    wsum = 0.0
+    for yy in range(max(0, y - radius), min(h, y + radius + 1), stride):
+        row_d = b * yy + c
+        for xx in range(max(0, x - radius), min(w, x + radius + 1), stride):
+            wq = weights[abs(guide[yy, xx] - g0)]
+            d = a * xx + row_d
+            j = int(np.floor((xx - d + 0.5) * up))
+            if j < 0 or j >= wu:
+                cq = tau
+            else:
+                cq = min(float(_popcount64(codes_left[yy, xx] ^ codes_right[yy, j])), tau)
+            dp = prior[yy, xx]
+            if lam > 0.0 and np.isfinite(dp):
+                cq += lam * min(abs(d - dp), cap)
+            total += wq * cq
+            wsum += wq
+    return total / wsum
+
+
+@njit(cache=True, parallel=prange_only())
+def plane_costs(pa, pb, pc, codes_left, codes_right, guide, weights, prior, up: int, radius: int, stride: int,
+                tau: float, lam: float, cap: float) -> np.ndarray:
+    """(H, W) float64 :func:`plane_cost` of every pixel's own plane (+inf where ``pc`` is not finite)."""
+    h, w = pa.shape
+    out = np.full((h, w), np.inf)
+    for y in prange(h):
+        for x in range(w):
+            if np.isfinite(pc[y, x]):
+                out[y, x] = plane_cost(y, x, pa[y, x], pb[y, x], pc[y, x], codes_left, codes_right, guide, weights,
+                                       prior, up, radius, stride, tau, lam, cap)
+    return out
+
+
+@njit(cache=True, inline="always")
+def _uniform(seed: int, y: int, x: int, k: int) -> float:
+    # splitmix64 of the pixel, iteration and draw: the same numbers on any thread count.
+    z = np.uint64(seed) * np.uint64(0x9E3779B97F4A7C15) + np.uint64(y) * np.uint64(0xBF58476D1CE4E5B9) \
+        + np.uint64(x) * np.uint64(0x94D049BB133111EB) + np.uint64(k) * np.uint64(0x2545F4914F6CDD1D)
+    z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    z = z ^ (z >> np.uint64(31))
+    return float(z >> np.uint64(11)) * (1.0 / 9007199254740992.0)
+
+
+NEIGHBOURS = np.array([[0, -1], [0, 1], [-1, 0], [1, 0]], np.int64)
+
+
+@njit(cache=True, parallel=prange_only())
+def sweep(pa, pb, pc, cost, parity: int, seed: int, shift: float, slope: float, samples: int, band: float,
+          lo: float, hi: float, codes_left, codes_right, guide, weights, prior, up: int, radius: int, stride: int,
+          tau: float, lam: float, cap: float) -> None:
+    """One half-iteration of red-black PatchMatch, in place: every pixel with
+    ``(x + y) % 2 == parity`` tries its four neighbours' planes (which have the other parity,
+    so no pixel reads a plane written in the same sweep and the result does not depend on the
+    thread count), then ``samples`` random perturbations of its best plane (disparity at the
+    pixel ±``shift``, slopes ±``slope``), and keeps the cheapest. A plane is only tried when
+    its disparity at the pixel lies in ``[lo, hi]`` and within ``band`` px of ``prior``."""
+    h, w = pa.shape
+    for y in prange(h):
+        for x in range((y + parity) % 2, w, 2):
+            if not np.isfinite(pc[y, x]):
+                continue
+            d0 = prior[y, x]
+            ba, bb, bc, best = pa[y, x], pb[y, x], pc[y, x], cost[y, x]
+            for n in range(4):
+                yy = y + NEIGHBOURS[n, 0]
+                xx = x + NEIGHBOURS[n, 1]
+                if yy < 0 or yy >= h or xx < 0 or xx >= w:
+                    continue
+                a, b, c = pa[yy, xx], pb[yy, xx], pc[yy, xx]
+                if not np.isfinite(c) or (a == ba and b == bb and c == bc):
+                    continue
+                d = a * x + b * y + c
+                if d < lo or d > hi or abs(d - d0) > band:
+                    continue
+                cc = plane_cost(y, x, a, b, c, codes_left, codes_right, guide, weights, prior, up, radius, stride,
+                                tau, lam, cap)
+                if cc < best:
+                    ba, bb, bc, best = a, b, c, cc
+            for k in range(samples):
+                d = ba * x + bb * y + bc + (2.0 * _uniform(seed, y, x, 3 * k) - 1.0) * shift
+                a = ba + (2.0 * _uniform(seed, y, x, 3 * k + 1) - 1.0) * slope
+                b = bb + (2.0 * _uniform(seed, y, x, 3 * k + 2) - 1.0) * slope
+                if d < lo or d > hi or abs(d - d0) > band:
+                    continue
+                c = d - a * x - b * y
+                cc = plane_cost(y, x, a, b, c, codes_left, codes_right, guide, weights, prior, up, radius, stride,
+                                tau, lam, cap)
+                if cc < best:
+                    ba, bb, bc, best = a, b, c, cc
+            pa[y, x], pb[y, x], pc[y, x], cost[y, x] = ba, bb, bc, best
+
+
+@njit(cache=True, parallel=prange_only())
+def plane_disparity(pa, pb, pc) -> np.ndarray:
+    """(H, W) float32 disparity of every pixel's own plane at the pixel (+inf where ``pc`` is)."""
+    h, w = pa.shape
+    out = np.empty((h, w), np.float32)
+    for y in prange(h):
+        for x in range(w):
+            out[y, x] = pa[y, x] * x + pb[y, x] * y + pc[y, x]
+    return out
