@@ -46,9 +46,10 @@ from stereocli.evaluate.api import EvalOptions, evaluate_pair, weighted_average 
 from stereocli.evaluate.datasets import load_scene  # noqa: E402
 from stereocli.io.images import read_image  # noqa: E402
 from stereocli.match.pipeline import match_pair  # noqa: E402
-from stereocli.process import keep_freed_memory  # noqa: E402
+from stereocli.process import keep_freed_memory, prepare_kernels  # noqa: E402
 
 keep_freed_memory()  # as the command line does: freed buffers stay in the process between pairs
+prepare_kernels()  # as the command line does: idle kernel threads sleep, numba starts faster
 
 DEFAULT_DATA = REPO.parent / "shared" / "data"
 #: v2 scenes: (folder, left, right, ndisp) with the disparity ranges used by the SGM paper.

@@ -35,9 +35,10 @@ from stereocli.match.config import build_config  # noqa: E402
 from stereocli.evaluate.metrics import derive_nonocc_mask, middlebury_stats  # noqa: E402
 from stereocli.match.kernels.maps import fill_background  # noqa: E402
 from stereocli.match.pipeline import match_pair  # noqa: E402
-from stereocli.process import keep_freed_memory  # noqa: E402
+from stereocli.process import keep_freed_memory, prepare_kernels  # noqa: E402
 
 keep_freed_memory()  # as the command line does: freed buffers stay in the process between pairs
+prepare_kernels()  # as the command line does: idle kernel threads sleep, numba starts faster
 
 DATA = REPO.parent / "shared" / "data"
 

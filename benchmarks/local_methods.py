@@ -43,9 +43,10 @@ from stereocli.evaluate.datasets import load_middlebury_v2  # noqa: E402
 from stereocli.evaluate.metrics import middlebury_stats  # noqa: E402
 from stereocli.io.images import read_image  # noqa: E402
 from stereocli.match.pipeline import match_pair  # noqa: E402
-from stereocli.process import keep_freed_memory  # noqa: E402
+from stereocli.process import keep_freed_memory, prepare_kernels  # noqa: E402
 
 keep_freed_memory()  # as the command line does: freed buffers stay in the process between pairs
+prepare_kernels()  # as the command line does: idle kernel threads sleep, numba starts faster
 
 DATA = REPO.parent / "shared" / "data"
 SCENES = {  # name: (folder, left, right)

@@ -120,11 +120,12 @@ class _CompileWatch:
 
 
 def notify_compilation(notice) -> None:
-    """Call ``notice()`` once, when this process first compiles a kernel (a cache miss: the
+    """Call ``notice()`` once, when this process next compiles a kernel (a cache miss: the
     first run after installing, a preset or input type not compiled before), so the command
-    line can say why it is slow. Needs :func:`prepare_kernels` (or numba already started)."""
+    line can say why it is slow; ``None`` stops watching. Needs :func:`prepare_kernels` (or
+    numba already started)."""
     _CompileWatch.notice = notice
-    if "numba.np.arraymath" in sys.modules:
+    if notice is not None and "numba.np.arraymath" in sys.modules:
         _watch_compilation()
 
 

@@ -186,6 +186,19 @@ def test_triangulate_refuses_an_uncalibrated_calib_txt(synthetic_rig, tmp_path, 
     assert len([line for line in res.err.splitlines() if line.startswith("Error")]) == 1
 
 
+def test_sift_matches_of_a_rectified_pair(synthetic_rig):
+    from stereocli.features.points import match_points
+
+    scene = synthetic_rig[0]["a"]  # its right view as rendered, before the warp
+    left, right = scene["left"], scene["right"]
+    found = match_points(left, right, method="sift")
+    truth = scene["disparity"][np.rint(found.left[:, 1]).astype(int), np.rint(found.left[:, 0]).astype(int)]
+    assert len(found) > 100 and np.median(np.abs(found.dy)) < 0.05
+    assert np.median(np.abs(found.dx - truth)) < 0.1
+    with pytest.raises(ValueError, match="valid: orb, sift"):
+        match_points(left, right, method="surf")
+
+
 def test_option_conflicts_are_usage_errors(tmp_path, run_cli):
     image = tmp_path / "x.png"
     write_image(image, np.zeros((20, 20), np.uint8))

@@ -77,24 +77,29 @@ def cli(ctx: click.Context, verbose: int, quiet: int) -> None:
     prepare_kernels()  # before numba starts: sleeping idle threads, a faster start
     ctx.ensure_object(dict)
     ctx.obj["verbosity"] = ctx.obj.get("verbosity", 0) + verbose - quiet
-    notify_compilation(lambda: _compile_notice(ctx))
+    notify_compilation(lambda: (_compile_notice(ctx), _warm_up_first_run()))
+    ctx.call_on_close(lambda: notify_compilation(None))  # for this command only
 
 
 #: Said on stderr when kernels compile (the numbers are the README's "Start-up and first run").
-COMPILE_NOTICE = ("stereocli: compiling the numba kernels this run needs (first use after installing, or of "
-                  "another preset or image type): about 15 s, once; later runs load them from the cache")
+COMPILE_NOTICE = ("stereocli: compiling the numba kernels for first use (after installing, or another preset or "
+                  "image type): about 30 s on two cores, once; later runs load them from the cache")
 
 
 def _compile_notice(ctx: click.Context) -> None:
-    """The first kernel of this run compiles: say so, and compile the map stages of the config
-    being matched in a helper process meanwhile (they are needed last)."""
+    """The first kernel of this run has to compile: say so (unless -q)."""
     if ctx.obj.get("verbosity", 0) >= 0:  # -q: errors only
         click.echo(COMPILE_NOTICE, err=True)
-    pipeline = sys.modules.get("stereocli.match.pipeline")
-    if pipeline is not None and pipeline.last_config() is not None:
-        from ..match.warmup import compile_aside
 
-        compile_aside(pipeline.last_config())
+
+def _warm_up_first_run() -> None:
+    """When a pair is being matched, compile its whole config on every core first (the run
+    then loads its kernels from the cache instead of compiling them one by one)."""
+    pipeline = sys.modules.get("stereocli.match.pipeline")
+    if pipeline is not None and pipeline.current_config() is not None:
+        from ..match.warmup import warm_up_first_run
+
+        warm_up_first_run(pipeline.current_config())
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -14,7 +14,7 @@ from . import options
 @options.sets
 @click.option("--all-presets", is_flag=True, help="Every bundled preset (with --set applied to each).")
 @click.option("-j", "--jobs", type=click.IntRange(1, 64), default=None,
-              help="Processes compiling at once (default: the number of cores, at most 3).")
+              help="Processes compiling at once (default: the number of cores, at most two per config).")
 @options.verbose
 @click.pass_context
 def warmup_cmd(ctx, config_files, sets, all_presets, jobs):
@@ -23,7 +23,7 @@ def warmup_cmd(ctx, config_files, sets, all_presets, jobs):
     Numba compiles each kernel the first time it runs and caches it on disk beside the
     installed package (or in NUMBA_CACHE_DIR); this runs the config on small synthetic pairs,
     on several processes at once. Use it when building a Docker image or a CI cache. Without
-    -c, the default preset; -c PRESET|FILE repeatable as for `match`.
+    -c, the default preset; each -c PRESET|FILE is a config of its own (with --set applied).
 
     \b
     Examples:
@@ -35,7 +35,8 @@ def warmup_cmd(ctx, config_files, sets, all_presets, jobs):
 
     from ..config import preset_names
     from ..match.config import build_config
-    from ..match.warmup import TASKS, warm_up
+    from ..match.warmup import warm_up
+    from ..process import notify_compilation
 
     if all_presets:
         configs = {name: build_config([name], sets) for name in preset_names()}
@@ -43,13 +44,14 @@ def warmup_cmd(ctx, config_files, sets, all_presets, jobs):
         configs = {name: build_config([name], sets) for name in config_files}
     else:
         configs = {"default": build_config([], sets)}
-    jobs = jobs or min(os.cpu_count() or 1, len(TASKS))
+    jobs = jobs or min(os.cpu_count() or 1, 2 * len(configs))
     quiet = options.verbosity(ctx) < 0
 
     def report(label: str, task: str, seconds: float) -> None:
         if not quiet:
             click.echo(f"{label}: {task} ready ({seconds:.1f} s)", err=True)
 
+    notify_compilation(None)  # compiling is what this command is for
     t0 = time.perf_counter()
     warm_up(configs, jobs=jobs, report=report)
     if not quiet:

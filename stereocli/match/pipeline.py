@@ -51,8 +51,8 @@ from .state import MatchState, Wants
 #: Use fused cost + WTA kernels when the pipeline allows it (False forces the volume path).
 FUSED = True
 
-#: The config of the pair this process prepared last (:func:`last_config`).
-_last_config: list = [None]
+#: The config of the pair being matched in this process, from :func:`prepare` to :func:`finish`.
+_current_config: list = [None]
 
 GIB = 1024.0**3
 #: Interpreter, numpy/numba/OpenCV libraries and compiled kernels (measured RSS before matching).
@@ -203,7 +203,7 @@ def prepare(
     if ndisp < 1:
         raise DataError(f"ndisp must be at least 1 (got {ndisp})")
     _set_threads(config.runtime.threads)
-    _last_config[0] = config
+    _current_config[0] = config
     shape = left.shape[:2]
     timings: dict[str, float] = {}
     refinements = _refinements(config, keep_invalid)
@@ -292,6 +292,7 @@ def finish(prepared: PreparedPair, results: list[StripResult], config: PipelineC
     for call in map_stages:
         _timed(timings, f"refinement.{call.stage.name}", call.stage.func, state, call.params)
     clear_invalid_left(state)
+    _current_config[0] = None
     strips, overlap = prepared.strips, prepared.overlap
     return MatchResult(
         disparity=np.ascontiguousarray(state.disparity, dtype=np.float32),
@@ -351,11 +352,14 @@ def match_pair(
     -------
     MatchResult with float32 disparity (+inf invalid) and per-stage timings in seconds.
     """
-    prepared = prepare(left, right, config, min_disp=min_disp, ndisp=ndisp, left_valid=left_valid,
-                       right_valid=right_valid, want_right=want_right, keep_invalid=keep_invalid,
-                       want_confidence=want_confidence)
-    results = (strip_map or run_strips)(prepared, config)
-    return finish(prepared, results, config)
+    try:
+        prepared = prepare(left, right, config, min_disp=min_disp, ndisp=ndisp, left_valid=left_valid,
+                           right_valid=right_valid, want_right=want_right, keep_invalid=keep_invalid,
+                           want_confidence=want_confidence)
+        results = (strip_map or run_strips)(prepared, config)
+        return finish(prepared, results, config)
+    finally:
+        _current_config[0] = None
 
 
 def _strip_state(state: MatchState, a: int, b: int) -> MatchState:
@@ -464,10 +468,10 @@ def _timed(timings: dict, key: str, func, state: MatchState, params) -> None:
     timings[key] = timings.get(key, 0.0) + time.perf_counter() - t0
 
 
-def last_config() -> PipelineConfig | None:
-    """The config of the pair this process prepared last (what :func:`stereocli.match.warmup.compile_aside`
-    compiles the map stages of when the run's first kernel compiles)."""
-    return _last_config[0]
+def current_config() -> PipelineConfig | None:
+    """The config of the pair being matched in this process (between :func:`prepare` and the end
+    of :func:`finish`), else None: what the command line warms up when a kernel has to compile."""
+    return _current_config[0]
 
 
 def _set_threads(threads: int) -> None:

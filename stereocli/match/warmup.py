@@ -1,42 +1,38 @@
-"""Compile a matching config's kernels before its first real pair.
+"""Compile a matching config's kernels before its first real pair, on several cores at once.
 
 Numba compiles each kernel the first time it runs and caches the machine code on disk (beside
 the installed package, or in ``NUMBA_CACHE_DIR``); every later process loads it in
-milliseconds. Compiling takes seconds per kernel and holds one core, so it is worth doing ahead
-(``stereocli warmup``: Docker images, CI caches) and on several cores at once.
+milliseconds. Compiling takes seconds per kernel on one core, so a first run is worth
+spreading over the cores: ``stereocli warmup`` does it ahead (Docker images, CI caches), and
+the command line does it when the first kernel of a run turns out not to be cached.
 
 The warm-up runs the config's own pipeline on small synthetic pairs, so every kernel compiles
-for exactly the argument types a real run gives it (RGB 8-bit input), split into tasks that run
-in parallel processes and share the disk cache:
+for exactly the argument types a real run gives it (RGB 8-bit input), in tasks that run in
+separate processes and share the disk cache:
 
 * ``volume_large``: the volume stages (cost, optimizer, volume refinements) of a 448×320 pair
   with 96 disparities, a volume large enough for the default SGM's coarse-to-fine search;
 * ``maps``: the map refinements (LR check, fill, median, votes, smoothing) on a synthetic
   disparity map, without running the volume stages;
 * ``volume_small``: the volume stages of a 128×96 pair with 16 disparities (the full-range
-  search of small problems).
-
-The command line also runs ``maps`` in a helper process when the first kernel of a run starts
-compiling (:func:`compile_aside`): the run compiles its volume stages meanwhile and later loads
-the map stages from the cache.
+  search of small problems; most of its kernels are ``volume_large``'s coarse level's, so it
+  runs last and loads them).
 """
 
 from __future__ import annotations
 
-import atexit
 import json
+import os
 import subprocess
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor
-from multiprocessing import get_context
 
 import numpy as np
 
 from .config import PipelineConfig, validate
 
-#: Tasks in order of decreasing compile time (the order a pool takes them in).
-TASKS = ("volume_large", "maps", "volume_small")
+#: Tasks, each with its share of the compile time (for spreading them over processes).
+TASKS = {"volume_large": 3.0, "maps": 2.0, "volume_small": 0.5}
 #: (width, height, ndisp) of each task's synthetic pair.
 SIZES = {"volume_large": (448, 320, 96), "maps": (128, 96, 16), "volume_small": (128, 96, 16)}
 
@@ -67,6 +63,8 @@ def run_task(task: str, config: PipelineConfig) -> float:
     """Run one warm-up task (see the module docstring) in this process; returns its seconds."""
     from .pipeline import StripResult, finish, prepare, run_strips
 
+    if task not in TASKS:
+        raise ValueError(f"unknown warm-up task {task!r}; valid: {', '.join(TASKS)}")
     t0 = time.perf_counter()
     width, height, ndisp = SIZES[task]
     left, right = synthetic_pair(width, height, ndisp)
@@ -81,80 +79,81 @@ def run_task(task: str, config: PipelineConfig) -> float:
             if state.wants.right:
                 strip.integer_disparity_right = np.floor(strip.disparity_right)
         finish(prepared, [strip], config)
-    elif task in SIZES:
-        run_strips(prepared, config)
     else:
-        raise ValueError(f"unknown warm-up task {task!r}; valid: {', '.join(TASKS)}")
+        run_strips(prepared, config)
     return time.perf_counter() - t0
 
 
-def _run_task_from_dict(task: str, config: dict) -> float:
-    return run_task(task, validate(config, "<warm-up>"))
+def plan(labels: list[str], jobs: int) -> list[list[tuple[str, str]]]:
+    """``(label, task)`` lists, one per process: the longest tasks first, each to the least
+    loaded process (``volume_small`` after the others, so it finds their kernels cached)."""
+    work = sorted(((label, task) for label in labels for task in TASKS), key=lambda lt: -TASKS[lt[1]])
+    slots: list[list[tuple[str, str]]] = [[] for _ in range(max(1, jobs))]
+    load = [0.0] * len(slots)
+    for label, task in work:
+        i = load.index(min(load))
+        slots[i].append((label, task))
+        load[i] += TASKS[task]
+    return [s for s in slots if s]
 
 
-def _start_worker() -> None:
-    from ..process import prepare_kernels
-
-    prepare_kernels()
-
-
-def warm_up(configs: dict[str, PipelineConfig], *, jobs: int = 1, report=None) -> dict[tuple[str, str], float]:
-    """Run every task of every config, on ``jobs`` processes (1: in this process); returns
-    ``{(config label, task): seconds}``. ``report(label, task, seconds)`` is called as each
-    task ends."""
-    work = [(label, task) for task in TASKS for label in configs]
-    done: dict[tuple[str, str], float] = {}
-    if jobs <= 1:
-        for label, task in work:
-            done[label, task] = run_task(task, configs[label])
+def warm_up(configs: dict[str, PipelineConfig], *, jobs: int = 1, report=None) -> None:
+    """Run every task of every config on ``jobs`` processes (1: in this process).
+    ``report(label, task, seconds)`` is called as each task's process ends (in process
+    order). Worker processes are stopped if this one is interrupted."""
+    slots = plan(list(configs), jobs)
+    if len(slots) == 1 and jobs <= 1:
+        for label, task in slots[0]:
+            seconds = run_task(task, configs[label])
             if report:
-                report(label, task, done[label, task])
-        return done
-    with ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn"), initializer=_start_worker) as pool:
-        futures = {pool.submit(_run_task_from_dict, task, configs[label].as_dict()): (label, task)
-                   for label, task in work}
-        for future, key in futures.items():
-            done[key] = future.result()
-            if report:
-                report(*key, done[key])
-    return done
-
-
-# --- the map stages compiled beside a first run ------------------------------------------------
-
-_aside: list[subprocess.Popen] = []
-
-
-def compile_aside(config: PipelineConfig | None) -> bool:
-    """Start a helper process that compiles ``config``'s map refinements (the ``maps`` task)
-    while this process goes on; False when there is nothing to do (no config, no map stage, or
-    a helper already started). The helper writes nothing but the numba cache, and is stopped
-    when this process exits."""
-    if config is None or _aside or not any(not c.stage.traits.needs_cost for c in config.refinement):
-        return False
-    helper = subprocess.Popen([sys.executable, "-m", "stereocli.match.warmup", "maps"], stdin=subprocess.PIPE,
-                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                report(label, task, seconds)
+        return
+    workers = []
     try:
-        helper.stdin.write(json.dumps(config.as_dict()).encode())
-        helper.stdin.close()
-    except OSError:
+        for slot in slots:
+            payload = json.dumps([[label, task, configs[label].as_dict()] for label, task in slot])
+            worker = subprocess.Popen([sys.executable, "-m", "stereocli.match.warmup"], stdin=subprocess.PIPE,
+                                      stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+            workers.append(worker)
+            worker.stdin.write(payload)
+            worker.stdin.close()
+        for worker in workers:
+            lines = worker.stdout.read().splitlines()
+            if worker.wait() != 0:
+                raise RuntimeError(f"a warm-up process failed (exit code {worker.returncode})")
+            for line in lines:
+                label, task, seconds = json.loads(line)
+                if report:
+                    report(label, task, seconds)
+    finally:
+        for worker in workers:
+            if worker.poll() is None:
+                worker.kill()
+                worker.wait()
+
+
+def warm_up_first_run(config: PipelineConfig | None) -> None:
+    """Called when a run's first kernel has to compile: compile all of ``config`` on every core
+    first (the run waits), so the run then loads its kernels from the cache. Any failure is
+    left to the run itself, which compiles what it needs."""
+    cores = os.cpu_count() or 1
+    if config is None or cores < 2:
+        return
+    try:
+        warm_up({"run": config}, jobs=min(cores, 2))
+    except Exception:  # noqa: BLE001 - only a warm-up: the run compiles what it lacks itself
         pass
-    _aside.append(helper)
-    atexit.register(_stop_aside)
-    return True
-
-
-def _stop_aside() -> None:
-    for helper in _aside:
-        if helper.poll() is None:
-            helper.terminate()
 
 
 def _main() -> None:
-    """``python -m stereocli.match.warmup TASK`` with the effective config as JSON on stdin."""
-    _start_worker()
-    config = json.loads(sys.stdin.read())
-    _run_task_from_dict(sys.argv[1], config)
+    """``python -m stereocli.match.warmup``: runs the ``[label, task, config]`` list read as JSON
+    on stdin; prints ``[label, task, seconds]`` per task."""
+    from ..process import prepare_kernels
+
+    prepare_kernels()
+    for label, task, config in json.loads(sys.stdin.read()):
+        seconds = run_task(task, validate(config, "<warm-up>"))
+        print(json.dumps([label, task, round(seconds, 2)]), flush=True)
 
 
 if __name__ == "__main__":

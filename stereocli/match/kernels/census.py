@@ -9,10 +9,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from . import prange_only
 
-
-@njit(cache=True, parallel=prange_only())
+@njit(cache=True, parallel=True)
 def _census_rows(image: np.ndarray, half_h: int, half_w: int) -> np.ndarray:
     # The innermost loop runs along x over row slices with the window offset fixed, which LLVM
     # vectorises (about 10x faster than building each pixel's string in turn); the ``half_w``
@@ -71,7 +69,7 @@ def _popcount64(v):
     return (v * np.uint64(0x0101010101010101)) >> np.uint64(56)
 
 
-@njit(cache=True, parallel=prange_only())
+@njit(cache=True, parallel=True)
 def _hamming_rows(census_left, census_right, min_disp: int, cost_max: float, out) -> None:
     h, w = census_left.shape
     nd = out.shape[2]
@@ -98,7 +96,7 @@ def _hamming_rows(census_left, census_right, min_disp: int, cost_max: float, out
                     o[k] = _popcount64(cl ^ reversed_right[base + k]) if k0 <= k <= k1 else top
 
 
-@njit(cache=True, parallel=prange_only())
+@njit(cache=True, parallel=True)
 def hamming_runs(census_left, census_right, min_disp: int, cost_max: float, run_lo, run_hi, offset, n: int,
                  right_valid):
     """Hamming costs on each pixel's run of hypotheses ``[run_lo, run_hi)`` only, stored ragged

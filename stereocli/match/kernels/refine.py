@@ -347,7 +347,7 @@ def joint_bilateral(disp, guide, radius: int, sigma_space: float, sigma_color: f
     return out
 
 
-@njit(cache=True, parallel=prange_only(), error_model="numpy")
+@njit(cache=True, parallel=True, error_model="numpy")
 def _line_fit_pass(disp, image, radius: int, vertical: bool, sigma_space: float, color_range: float,
                    gate: float) -> np.ndarray:
     # One 1-D pass of plane_smooth, along rows (vertical=False) or columns. Loops run over

@@ -3,21 +3,12 @@ plane fitting (RANSAC and histogram voting) and locally consistent voting (Matto
 
 from __future__ import annotations
 
-import warnings
-
 import numpy as np
 from numba import njit, prange
-from numba.core.errors import NumbaPerformanceWarning
 
 from . import prange_only
 
 INF = np.float32(np.inf)
-
-# :func:`_geodesic_vote_lines` is compiled with numba's parallel pipeline for its clean-ups
-# (without them every inlined helper call copied array references, ten times slower) although
-# it has no parallel loop of its own; numba warns about exactly that, for nothing here.
-warnings.filterwarnings("ignore", message=r"(?s).*'parallel=True' was specified but no transformation",
-                        category=NumbaPerformanceWarning)
 
 
 # --- segmentation -------------------------------------------------------------------------
@@ -689,87 +680,6 @@ def _add_candidate(cand_m, cand_s, seen, touched, cn: int, k: int, m: float, s: 
     return cn
 
 
-@njit(cache=True, parallel=True)  # no parallel loop: see the warnings filter at the top
-def _geodesic_vote_lines(disp, bins, packed, centre, passed, min_change: int, max_bins: int, vertical: bool, out,
-                         line0: int, line1: int, centres, decay, fk, fm, fs, fn, kk, mm, ss, cand_m, cand_s, seen,
-                         touched) -> None:
-    """Lines ``line0 ≤ line < line1`` of :func:`geodesic_vote_line` into ``out``, with one
-    chunk's buffers. (A function of its own rather than the body of the parallel loop: numba's
-    parallel passes then see a small loop, and the kernel compiles in half the time, to the
-    same code.)"""
-    h, w = bins.shape
-    n_pos = h if vertical else w
-    for line in range(line0, line1):
-        n_centres = 0
-        for p in range(n_pos):
-            if centre[p, line] if vertical else centre[line, p]:
-                centres[n_centres] = p
-                n_centres += 1
-        if n_centres == 0:
-            continue
-        # Forward: the running vote arriving at each centre (before its own vote). The
-        # current run of one bin is kept in true values (decayed by one multiply-add per
-        # pixel); the other bins in stored values, true = stored × scale, so decaying them
-        # is one multiplication of ``scale``.
-        n, last, scale, run_k, run_m, run_s = _empty_vote()
-        ci = 0
-        for p in range(n_pos):
-            if p > 0:
-                if vertical:
-                    step = _packed_distance(packed[p, line], packed[p - 1, line])
-                else:
-                    step = _packed_distance(packed[line, p], packed[line, p - 1])
-                decay[p] = passed[step]  # kept for the backward pass
-                scale, run_m, run_s = _decay_vote(mm, ss, n, scale, run_m, run_s, decay[p])
-            if ci < n_centres and centres[ci] == p:
-                n, last, run_k, run_m, run_s = _add_vote(kk, mm, ss, n, last, scale, run_k, run_m, run_s, -1, 0.0)
-                for j in range(n):
-                    fk[ci, j] = kk[j]
-                    fm[ci, j] = mm[j] * scale
-                    fs[ci, j] = ss[j] * scale
-                fn[ci] = n
-                ci += 1
-            k = bins[p, line] if vertical else bins[line, p]
-            if k >= 0:
-                d = disp[p, line] if vertical else disp[line, p]
-                n, last, run_k, run_m, run_s = _add_vote(kk, mm, ss, n, last, scale, run_k, run_m, run_s, k, d)
-        # Backward, deciding each centre from its own vote and both running votes.
-        n, last, scale, run_k, run_m, run_s = _empty_vote()
-        ci = n_centres - 1
-        for p in range(n_pos - 1, -1, -1):
-            if p < n_pos - 1:
-                scale, run_m, run_s = _decay_vote(mm, ss, n, scale, run_m, run_s, decay[p + 1])
-            k = bins[p, line] if vertical else bins[line, p]
-            d = disp[p, line] if vertical else disp[line, p]
-            if ci >= 0 and centres[ci] == p:
-                n, last, run_k, run_m, run_s = _add_vote(kk, mm, ss, n, last, scale, run_k, run_m, run_s, -1, 0.0)
-                # Own vote, then the forward and the backward running votes.
-                cn = _add_candidate(cand_m, cand_s, seen, touched, 0, k, 1.0, d)
-                for j in range(fn[ci]):
-                    cn = _add_candidate(cand_m, cand_s, seen, touched, cn, fk[ci, j], fm[ci, j], fs[ci, j])
-                for j in range(n):
-                    cn = _add_candidate(cand_m, cand_s, seen, touched, cn, kk[j], mm[j] * scale, ss[j] * scale)
-                best = touched[0]
-                for i in range(1, cn):
-                    b = touched[i]
-                    if cand_m[b] > cand_m[best] or (cand_m[b] == cand_m[best] and b < best):
-                        best = b
-                if abs(best - k) >= min_change:
-                    v = np.float32(cand_s[best] / cand_m[best])
-                    if vertical:
-                        out[p, line] = v
-                    else:
-                        out[line, p] = v
-                for i in range(cn):
-                    b = touched[i]
-                    cand_m[b] = 0.0
-                    cand_s[b] = 0.0
-                    seen[b] = False
-                ci -= 1
-            if k >= 0:
-                n, last, run_k, run_m, run_s = _add_vote(kk, mm, ss, n, last, scale, run_k, run_m, run_s, k, d)
-
-
 @njit(cache=True, parallel=prange_only())
 def geodesic_vote_line(disp, bins, packed, centre, passed, min_change: int, max_bins: int, n_bins: int,
                        vertical: bool):
@@ -791,8 +701,8 @@ def geodesic_vote_line(disp, bins, packed, centre, passed, min_change: int, max_
     h, w = bins.shape
     out = disp.copy()
     n_lines = w if vertical else h
-    n_chunks = min(n_lines, 8)  # few chunks: each allocates its line buffers
     n_pos = h if vertical else w
+    n_chunks = min(n_lines, 8)  # few chunks: each allocates its line buffers
     for chunk in prange(n_chunks):
         # Per-thread buffers, reused for every line of the chunk.
         centres = np.empty(n_pos, np.int64)
@@ -811,7 +721,73 @@ def geodesic_vote_line(disp, bins, packed, centre, passed, min_change: int, max_
         cand_s = np.zeros(n_bins, np.float64)
         seen = np.zeros(n_bins, np.bool_)
         touched = np.empty(2 * max_bins + 3, np.int32)
-        _geodesic_vote_lines(disp, bins, packed, centre, passed, min_change, max_bins, vertical, out,
-                             chunk * n_lines // n_chunks, (chunk + 1) * n_lines // n_chunks, centres, decay, fk, fm,
-                             fs, fn, kk, mm, ss, cand_m, cand_s, seen, touched)
+        for line in range(chunk * n_lines // n_chunks, (chunk + 1) * n_lines // n_chunks):
+            n_centres = 0
+            for p in range(n_pos):
+                if centre[p, line] if vertical else centre[line, p]:
+                    centres[n_centres] = p
+                    n_centres += 1
+            if n_centres == 0:
+                continue
+            # Forward: the running vote arriving at each centre (before its own vote). The
+            # current run of one bin is kept in true values (decayed by one multiply-add per
+            # pixel); the other bins in stored values, true = stored × scale, so decaying them
+            # is one multiplication of ``scale``.
+            n, last, scale, run_k, run_m, run_s = _empty_vote()
+            ci = 0
+            for p in range(n_pos):
+                if p > 0:
+                    if vertical:
+                        step = _packed_distance(packed[p, line], packed[p - 1, line])
+                    else:
+                        step = _packed_distance(packed[line, p], packed[line, p - 1])
+                    decay[p] = passed[step]  # kept for the backward pass
+                    scale, run_m, run_s = _decay_vote(mm, ss, n, scale, run_m, run_s, decay[p])
+                if ci < n_centres and centres[ci] == p:
+                    n, last, run_k, run_m, run_s = _add_vote(kk, mm, ss, n, last, scale, run_k, run_m, run_s, -1, 0.0)
+                    for j in range(n):
+                        fk[ci, j] = kk[j]
+                        fm[ci, j] = mm[j] * scale
+                        fs[ci, j] = ss[j] * scale
+                    fn[ci] = n
+                    ci += 1
+                k = bins[p, line] if vertical else bins[line, p]
+                if k >= 0:
+                    d = disp[p, line] if vertical else disp[line, p]
+                    n, last, run_k, run_m, run_s = _add_vote(kk, mm, ss, n, last, scale, run_k, run_m, run_s, k, d)
+            # Backward, deciding each centre from its own vote and both running votes.
+            n, last, scale, run_k, run_m, run_s = _empty_vote()
+            ci = n_centres - 1
+            for p in range(n_pos - 1, -1, -1):
+                if p < n_pos - 1:
+                    scale, run_m, run_s = _decay_vote(mm, ss, n, scale, run_m, run_s, decay[p + 1])
+                k = bins[p, line] if vertical else bins[line, p]
+                d = disp[p, line] if vertical else disp[line, p]
+                if ci >= 0 and centres[ci] == p:
+                    n, last, run_k, run_m, run_s = _add_vote(kk, mm, ss, n, last, scale, run_k, run_m, run_s, -1, 0.0)
+                    # Own vote, then the forward and the backward running votes.
+                    cn = _add_candidate(cand_m, cand_s, seen, touched, 0, k, 1.0, d)
+                    for j in range(fn[ci]):
+                        cn = _add_candidate(cand_m, cand_s, seen, touched, cn, fk[ci, j], fm[ci, j], fs[ci, j])
+                    for j in range(n):
+                        cn = _add_candidate(cand_m, cand_s, seen, touched, cn, kk[j], mm[j] * scale, ss[j] * scale)
+                    best = touched[0]
+                    for i in range(1, cn):
+                        b = touched[i]
+                        if cand_m[b] > cand_m[best] or (cand_m[b] == cand_m[best] and b < best):
+                            best = b
+                    if abs(best - k) >= min_change:
+                        v = np.float32(cand_s[best] / cand_m[best])
+                        if vertical:
+                            out[p, line] = v
+                        else:
+                            out[line, p] = v
+                    for i in range(cn):
+                        b = touched[i]
+                        cand_m[b] = 0.0
+                        cand_s[b] = 0.0
+                        seen[b] = False
+                    ci -= 1
+                if k >= 0:
+                    n, last, run_k, run_m, run_s = _add_vote(kk, mm, ss, n, last, scale, run_k, run_m, run_s, k, d)
     return out

@@ -1,0 +1,100 @@
+"""What one call costs before it matches: stage modules load by name, numba's start-up settings,
+the compile notice and the warm-up. (Timings live in benchmarks/startup.py, not here.)"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+
+from stereocli import registry
+from stereocli.match import stages, warmup
+
+
+def _python(code: str, **env) -> subprocess.CompletedProcess:
+    import os
+
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          env=dict(os.environ, **env))
+
+
+def test_the_catalogue_names_every_stage_and_the_module_that_registers_it():
+    registered = {(s.kind, s.name): s.func.__module__ for s in registry.stages()}
+    declared = {(kind, name): module for module, kinds in stages.CATALOGUE.items()
+                for kind, names in kinds.items() for name in names}
+    assert declared == registered
+
+
+def test_a_run_imports_only_the_stage_modules_its_config_names():
+    code = ("import sys, json\nfrom stereocli.match.config import build_config\nbuild_config()\n"
+            "print(json.dumps(sorted(m for m in sys.modules if m.startswith('stereocli.match'))))")
+    loaded = set(json.loads(_python(code).stdout))
+    assert {"stereocli.match.cost", "stereocli.match.optimize.sgm", "stereocli.match.refine",
+            "stereocli.match.refine_segment"} <= loaded
+    unused = {"stereocli.match.aggregate", "stereocli.match.cost_mi", "stereocli.match.optimize.bp",
+              "stereocli.match.optimize.gc", "stereocli.match.refine_voting", "stereocli.match.refine_local"}
+    assert not loaded & unused
+
+
+def test_another_stage_loads_its_module_when_named_and_listing_loads_all(run_cli):
+    code = ("import sys\nfrom stereocli.match.config import build_config\n"
+            "build_config(sets=['optimizer.name=bp'])\nprint('stereocli.match.optimize.bp' in sys.modules)")
+    assert _python(code).stdout.strip() == "True"
+    listed = run_cli("stages", "--format", "json")
+    assert len(listed.json()) == sum(len(n) for kinds in stages.CATALOGUE.values() for n in kinds.values())
+
+
+def test_numba_starts_without_its_blas_probe_and_idle_threads_sleep():
+    code = ("import os, sys\nfrom stereocli.process import prepare_kernels\nprepare_kernels()\n"
+            "from numba import njit\nf = njit(lambda x: x + 1)\nf(1)\n"
+            "import numba.np.arraymath as am\n"
+            "print(os.environ['OMP_WAIT_POLICY'], am._HAVE_BLAS, 'scipy.linalg' in sys.modules)")
+    assert _python(code).stdout.split() == ["passive", "False", "False"]
+    # A value the user set wins.
+    assert _python(code, OMP_WAIT_POLICY="active").stdout.split()[0] == "active"
+
+
+def test_the_compile_notice_comes_once_per_command():
+    code = ("from stereocli.process import prepare_kernels, notify_compilation\nprepare_kernels()\n"
+            "notify_compilation(lambda: print('NOTICE'))\n"
+            "from numba import njit\nf = njit(lambda x: x + 1)\nf(1)\nf(1.5)\n"
+            "notify_compilation(None)\ng = njit(lambda x: x - 1)\ng(1)\nprint('done')")
+    assert _python(code).stdout.split() == ["NOTICE", "done"]
+
+
+def test_the_compile_notice_says_so_on_stderr_unless_quiet(capsys):
+    from types import SimpleNamespace
+
+    from stereocli.cli.main import COMPILE_NOTICE, _compile_notice
+
+    _compile_notice(SimpleNamespace(obj={"verbosity": 0}))
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and COMPILE_NOTICE in err and "about" in err and " s" in err
+    _compile_notice(SimpleNamespace(obj={"verbosity": -1}))
+    assert capsys.readouterr().err == ""
+
+
+def test_warm_up_plan_spreads_the_longest_tasks_first():
+    assert warmup.plan(["default"], 2) == [[("default", "volume_large")],
+                                           [("default", "maps"), ("default", "volume_small")]]
+    assert warmup.plan(["default"], 1) == [[("default", t) for t in ("volume_large", "maps", "volume_small")]]
+    slots = warmup.plan(["a", "b"], 3)
+    assert sorted(t for s in slots for t in s) == sorted((c, t) for c in "ab" for t in warmup.TASKS)
+
+
+def test_synthetic_pair_shows_a_box_in_front_of_a_plane():
+    left, right = warmup.synthetic_pair(96, 64, 16)
+    assert left.shape == right.shape == (64, 96, 3) and left.dtype == np.uint8
+    assert np.array_equal(left[0, 8:], right[0, 4:-4])  # background at ndisp // 4
+    assert np.array_equal(left[32, 40:60], right[32, 32:52])  # the box at ndisp // 2
+
+
+def test_warmup_command_runs_every_task(run_cli):
+    r = run_cli("warmup", "--jobs", "1")
+    assert r.code == 0
+    for task in warmup.TASKS:
+        assert f"default: {task} ready" in r.err
+    assert "compiled kernels for default" in r.err
+    assert run_cli("warmup", "--jobs", "1", "-q").err == ""
