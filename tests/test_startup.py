@@ -46,12 +46,13 @@ def test_another_stage_loads_its_module_when_named_and_listing_loads_all(run_cli
     assert len(listed.json()) == sum(len(n) for kinds in stages.CATALOGUE.values() for n in kinds.values())
 
 
-def test_numba_starts_without_its_blas_probe_and_idle_threads_sleep():
+def test_numba_starts_without_its_blas_probe_and_idle_threads_soon_sleep():
     code = ("import os, sys\nfrom stereocli.process import prepare_kernels\nprepare_kernels()\n"
             "from numba import njit\nf = njit(lambda x: x + 1)\nf(1)\n"
             "import numba.np.arraymath as am\n"
-            "print(os.environ['OMP_WAIT_POLICY'], am._HAVE_BLAS, 'scipy.linalg' in sys.modules)")
-    assert _python(code).stdout.split() == ["passive", "False", "False"]
+            "print(os.environ['OMP_WAIT_POLICY'], os.environ['GOMP_SPINCOUNT'], am._HAVE_BLAS,"
+            " 'scipy.linalg' in sys.modules)")
+    assert _python(code).stdout.split() == ["passive", "10000", "False", "False"]
     # A value the user set wins.
     assert _python(code, OMP_WAIT_POLICY="active").stdout.split()[0] == "active"
 

@@ -147,9 +147,11 @@ def warm_up_first_run(config: PipelineConfig | None) -> None:
 
 def _main() -> None:
     """``python -m stereocli.match.warmup``: runs the ``[label, task, config]`` list read as JSON
-    on stdin; prints ``[label, task, seconds]`` per task."""
-    from ..process import prepare_kernels
+    on stdin; prints ``[label, task, seconds]`` per task. Leaves Ctrl-C to its parent (which
+    stops it) and exits when the parent is gone."""
+    from ..process import prepare_kernels, worker_signals
 
+    worker_signals(os.getppid())
     prepare_kernels()
     for label, task, config in json.loads(sys.stdin.read()):
         seconds = run_task(task, validate(config, "<warm-up>"))
