@@ -108,6 +108,10 @@ CASES = [
     Case("calib-vmin-nan", "wrong output, exit 0",
          _match("--viz", inputs=lambda t, s: copy_scenes(s, t / "in", {"curved": calib_line("vmin", "nan")})),
          3, "vmin='nan' is not a finite number"),
+    Case("calib-focal-zero", "wrong output, exit 0",
+         _with_result(lambda t, s: ["triangulate", t / "res", "-o", t / "out", "--scenes",
+                                    copy_scenes(s, t / "in", {"curved": calib_line("cam0", "[0 0 0; 0 0 0; 0 0 1]")})]),
+         3, "cam0 is no camera matrix"),
     # -- values that pass the range checks
     Case("set-nan", "NaN passes range checks", _match("--set", "optimizer.p2=.nan"), 2, "optimizer.p2"),
     Case("set-inf-budget", "NaN passes range checks", _match("--set", "runtime.memory_gb=.inf"), 2,

@@ -93,6 +93,8 @@ class StereoCalibration:
             self.rectified_size = (int(self.rectified_size[0]), int(self.rectified_size[1]))
         if self.T.shape != (3,):
             raise DataError(f"T must have 3 elements, got {self.T.size}")
+        for key in ("K1", "K2"):
+            _check_camera_matrix(key, getattr(self, key))
         if self.E is None:
             self.E = skew(self.T) @ self.R
         if self.F is None:
@@ -409,6 +411,8 @@ def to_middlebury(calib: StereoCalibration, *, ndisp: int = 0) -> MiddleburyCali
 def from_middlebury(mb: MiddleburyCalib) -> StereoCalibration:
     """A rectified :class:`StereoCalibration` (units mm unless the file says otherwise)."""
     units = str(mb.extra.get("units", "mm"))
+    for key in ("cam0", "cam1"):
+        _check_camera_matrix(key, np.asarray(getattr(mb, key), np.float64))
     f = mb.cam0[0, 0]
     P1 = np.hstack([mb.cam0, np.zeros((3, 1))])
     P2 = np.hstack([mb.cam1, np.array([[-mb.cam1[0, 0] * mb.baseline], [0.0], [0.0]])])
@@ -456,6 +460,15 @@ def detect_format(path: str | os.PathLike) -> str:
 def load_calibration(path: str | os.PathLike) -> StereoCalibration:
     """Read any supported calibration file (format auto-detected; see the module docstring)."""
     path = Path(path)
+    try:
+        return _load_calibration(path)
+    except DataError as exc:  # a check of the matrices (StereoCalibration) does not know the file
+        if str(exc).startswith(str(path)):
+            raise
+        raise DataError(f"{path}: {exc}") from exc
+
+
+def _load_calibration(path: Path) -> StereoCalibration:
     fmt = detect_format(path)
     if fmt == "middlebury":
         return _finite(from_middlebury(read_calib_txt(path)), path)
@@ -471,6 +484,18 @@ def load_calibration(path: str | os.PathLike) -> StereoCalibration:
         if not np.all(np.isfinite(getattr(calib, key))) or getattr(calib, key)[0, 0] <= 0:
             raise DataError(f"{path}: {key} is not a valid camera matrix")
     return _finite(calib, path)
+
+
+def _check_camera_matrix(key: str, K: np.ndarray) -> None:
+    """Raise :class:`DataError` unless ``K`` (3, 3) is a pinhole camera matrix: finite, focal
+    lengths > 0, last row (0, 0, 1)."""
+    if not np.isfinite(K).all():
+        raise DataError(f"{key} holds NaN or infinite values")
+    if K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise DataError(f"{key} is no camera matrix: focal lengths fx={K[0, 0]:g}, fy={K[1, 1]:g} "
+                        "(both must be > 0 px)")
+    if not np.allclose(K[2], (0.0, 0.0, 1.0)):
+        raise DataError(f"{key} is no camera matrix: its last row is {K[2].tolist()}, not [0, 0, 1]")
 
 
 def _finite(calib: StereoCalibration, path: Path) -> StereoCalibration:
