@@ -82,6 +82,9 @@ class _NumbaStart(importlib.abc.MetaPathFinder):
       0.2 s of every process. No stereocli kernel uses those functions or BLAS, and a fresh
       install has no SciPy at all (it is no dependency), so the probe fails, as there. Every
       other ``scipy.linalg`` import proceeds normally.
+    * Fails the ``cffi`` import of ``numba.core.typing.cffi_utils`` in the same way: with cffi
+      installed (other packages bring it), numba imports it and builds a C parser, 0.02 s of
+      every process, to type cffi functions passed to kernels; stereocli passes none.
     """
 
     def find_spec(self, name, path=None, target=None):
@@ -91,6 +94,10 @@ class _NumbaStart(importlib.abc.MetaPathFinder):
             arraymath = sys.modules.get("numba.np.arraymath")
             if arraymath is not None and not hasattr(arraymath, "_HAVE_BLAS"):  # arraymath is starting
                 raise ImportError("stereocli: numba's BLAS probe skipped")
+        elif name == "cffi":
+            support = sys.modules.get("numba.core.typing.cffi_utils")
+            if support is not None and not hasattr(support, "SUPPORTED"):  # cffi_utils is starting
+                raise ImportError("stereocli: numba's cffi support skipped")
         return None
 
 

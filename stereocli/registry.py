@@ -113,6 +113,10 @@ class StageTraits:
     #: stage sits between them, the pipeline does not run the cost stage (the optimizer computes
     #: the costs itself, e.g. only on its coarse-to-fine windows).
     runs_cost: Predicate | None = None
+    #: ``f(params, height, width, ndisp) -> params``: params with which a tiny pair (a warm-up
+    #: that loads the kernels before a run's first pair is timed) takes the code path a pair of
+    #: this size takes with ``params``, when the path depends on the size.
+    small_twin: Callable | None = None
     #: ``f(params, width, ndisp) -> bytes``: fixed buffers per row strip (memory planner).
     buffer_bytes: Callable | None = None
 

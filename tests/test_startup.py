@@ -8,6 +8,7 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 
 from stereocli import registry
 from stereocli.match import stages, warmup
@@ -57,6 +58,16 @@ def test_numba_starts_without_its_blas_probe_and_idle_threads_soon_sleep():
     assert _python(code, OMP_WAIT_POLICY="active").stdout.split()[0] == "active"
 
 
+def test_numba_starts_without_its_cffi_support_and_cffi_still_imports_later():
+    pytest.importorskip("cffi")  # installed by other packages; numba imports it when present
+    code = ("import sys\nfrom stereocli.process import prepare_kernels\nprepare_kernels()\n"
+            "from numba import njit\nf = njit(lambda x: x + 1)\nf(1)\n"
+            "from numba.core.typing import cffi_utils\n"
+            "print(cffi_utils.SUPPORTED, 'cffi' in sys.modules)\n"
+            "import cffi\nprint(cffi.FFI is not None)")
+    assert _python(code).stdout.split() == ["False", "False", "True"]
+
+
 def test_the_compile_notice_comes_once_per_command():
     code = ("from stereocli.process import prepare_kernels, notify_compilation\nprepare_kernels()\n"
             "notify_compilation(lambda: print('NOTICE'))\n"
@@ -99,3 +110,26 @@ def test_warmup_command_runs_every_task(run_cli):
         assert f"default: {task} ready" in r.err
     assert "compiled kernels for default" in r.err
     assert run_cli("warmup", "--jobs", "1", "-q").err == ""
+
+
+@pytest.mark.parametrize("sets", [[], ["optimizer.coarse_min_volume=1.0"], ["optimizer.coarse=false"]])
+def test_the_warm_up_pair_takes_the_code_path_of_the_real_pair(monkeypatch, sets):
+    # The tiny pair matched before a run's first pair must run the kernels that pair runs, or
+    # the first pair's time.txt includes loading the others.
+    from stereocli.jobs.match import _tiny_match
+    from stereocli.match.config import build_config, small_twin
+    from stereocli.match.optimize import sgm as osgm
+    from stereocli.match.pipeline import match_pair
+
+    windowed = []
+    real_windowed = osgm._run_windowed
+    monkeypatch.setattr(osgm, "_run_windowed", lambda *a, **k: (windowed.append(True), real_windowed(*a, **k)))
+    config = build_config([], sets)
+    left, right = warmup.synthetic_pair(200, 160, 64)
+    match_pair(left, right, config, ndisp=64)
+    real = bool(windowed)
+    windowed.clear()
+    _tiny_match(small_twin(config, 160, 200, 64), channels=3, dtype=np.dtype(np.uint8), min_disp=0, ndisp=64,
+                masks=False)
+    assert bool(windowed) == real
+    assert real == (sets == ["optimizer.coarse_min_volume=1.0"])  # 160·200·64 = 2.0 M cells

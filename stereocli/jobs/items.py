@@ -347,7 +347,9 @@ def remove_staging_roots(items: list[WorkItem]) -> None:
 
 def prepare_worker() -> None:
     """Process-wide settings every worker process gets before running items: freed large
-    buffers stay in the process between items (:mod:`stereocli.process`)."""
-    from ..process import keep_freed_memory
+    buffers stay in the process between items, and the kernels' start-up settings
+    (:mod:`stereocli.process`)."""
+    from ..process import keep_freed_memory, prepare_kernels
 
     keep_freed_memory()
+    prepare_kernels()

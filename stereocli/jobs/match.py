@@ -182,13 +182,17 @@ def _tiny_match(config, *, channels: int, dtype: np.dtype, min_disp: int, ndisp:
 
 def _warm_up(config, left: np.ndarray, *, min_disp: int, ndisp: int, masks: bool, **flags) -> None:
     """Once per process and kind of call, match a tiny pair first, so that the time of the first
-    real pair (``time.txt``) holds matching, not loading (or compiling) the kernels."""
-    key = (id(config), left.ndim, left.dtype.str, masks, tuple(sorted(flags.items())))
+    real pair (``time.txt``) holds matching, not loading (or compiling) the kernels. The tiny
+    pair takes the code path of the real one (:func:`~stereocli.match.config.small_twin`)."""
+    from ..match.config import small_twin
+
+    twin = small_twin(config, left.shape[0], left.shape[1], ndisp)
+    key = (id(config), repr(twin.as_dict()), left.ndim, left.dtype.str, masks, tuple(sorted(flags.items())))
     if key in _WARMED:
         return
     _WARMED.add(key)
     try:
-        _tiny_match(config, channels=left.shape[2] if left.ndim == 3 else 1, dtype=left.dtype,
+        _tiny_match(twin, channels=left.shape[2] if left.ndim == 3 else 1, dtype=left.dtype,
                     min_disp=min_disp, ndisp=ndisp, masks=masks, **flags)
     except Exception:  # noqa: BLE001 - only a warm-up: the real pair reports its own errors
         pass

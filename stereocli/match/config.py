@@ -132,3 +132,17 @@ def build_config(config_files: list[str] | tuple[str, ...] = (), sets: list[str]
     result = validate(merged, sources[-1])
     result.sources = sources
     return result
+
+
+def small_twin(config: PipelineConfig, height: int, width: int, ndisp: int) -> PipelineConfig:
+    """``config`` for a tiny warm-up pair that runs the kernels a ``height`` × ``width`` pair
+    with ``ndisp`` disparities runs: every stage's params pass through its ``small_twin``
+    trait (stages whose code path does not depend on the size keep theirs)."""
+
+    def twin(call: StageCall) -> StageCall:
+        make = call.stage.traits.small_twin
+        return call if make is None else StageCall(call.stage, make(call.params, height, width, ndisp))
+
+    return dataclasses.replace(config, preprocess=[twin(c) for c in config.preprocess], cost=twin(config.cost),
+                               aggregation=[twin(c) for c in config.aggregation], optimizer=twin(config.optimizer),
+                               refinement=[twin(c) for c in config.refinement])

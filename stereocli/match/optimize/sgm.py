@@ -198,8 +198,7 @@ def run_sgm(state: MatchState, p: SGMParams, cost=None, coarse: bool | None = No
     (coarse-to-fine: see :func:`_run_windowed`). ``cost``: the configured cost StageCall, which
     the coarse-to-fine search runs itself (without it, only ``state.cost`` is used)."""
     h, w = state.shape
-    if ((p.coarse if coarse is None else coarse) and cost is not None
-            and state.ndisp > max(4, p.coarse_min_ndisp) and h * w * state.ndisp > p.coarse_min_volume * 1e6):
+    if (p.coarse if coarse is None else coarse) and cost is not None and _coarse_to_fine_pays(p, h, w, state.ndisp):
         _run_windowed(state, p, cost)
         return
     if state.cost is None and cost is not None:  # left to this stage (runs_cost, coarse level)
@@ -216,6 +215,18 @@ def run_sgm(state: MatchState, p: SGMParams, cost=None, coarse: bool | None = No
     state.cost = acc
     state.cost_max = float(S_MAX)
     state.extras["sgm_scale"] = scale
+
+
+def _coarse_to_fine_pays(p: SGMParams, height: int, width: int, ndisp: int) -> bool:
+    return ndisp > max(4, p.coarse_min_ndisp) and height * width * ndisp > p.coarse_min_volume * 1e6
+
+
+def _small_twin(p: SGMParams, height: int, width: int, ndisp: int) -> SGMParams:
+    """A tiny pair searches coarse to fine exactly when a ``height`` × ``width`` pair with
+    ``ndisp`` disparities does (the windowed kernels are others than the full-range ones)."""
+    if p.coarse and _coarse_to_fine_pays(p, height, width, ndisp):
+        return replace(p, coarse_min_ndisp=0, coarse_min_volume=0.0)
+    return replace(p, coarse=False)
 
 
 def _buffer_bytes(p: SGMParams, width: int, ndisp: int) -> float:
@@ -235,7 +246,8 @@ def _searches_coarse_to_fine(p: SGMParams) -> bool:
 # (census) are used as they are: no float volume, no quantised copy, only the uint16 sums.
 @register("optimizer", "sgm", SGMParams,
           traits=StageTraits(volume_copies=0.25, accepts_integer_cost=True, integer_volume_copies=0.5,
-                             buffer_bytes=_buffer_bytes, runs_cost=_searches_coarse_to_fine))
+                             buffer_bytes=_buffer_bytes, runs_cost=_searches_coarse_to_fine,
+                             small_twin=_small_twin))
 def sgm(state: MatchState, p: SGMParams, cost=None) -> None:
     """Semi-global matching: sum of 1-D smoothness-constrained path costs (Hirschmüller 2008).
 
