@@ -45,6 +45,7 @@ from stereocli.match.config import build_config  # noqa: E402
 from stereocli.evaluate.api import EvalOptions, evaluate_pair, weighted_average  # noqa: E402
 from stereocli.evaluate.datasets import load_scene  # noqa: E402
 from stereocli.io.images import read_image  # noqa: E402
+from stereocli.match.kernels import set_threads as set_kernel_threads  # noqa: E402
 from stereocli.match.pipeline import match_pair  # noqa: E402
 from stereocli.process import keep_freed_memory, prepare_kernels  # noqa: E402
 
@@ -273,6 +274,7 @@ def main(argv=None) -> int:
 
         cv2.setNumThreads(args.threads)
         numba.set_num_threads(args.threads)
+        set_kernel_threads(args.threads)
     only = set(filter(None, args.scenes.split(","))) or None
     scenes = load_scenes(args.data, args.datasets.split(","), only)
     presets = [p for p in args.presets.split(",") if p]

@@ -31,6 +31,7 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 
 from accuracy import DEFAULT_DATA, TURN_GAP_S, load_scenes, run_opencv  # noqa: E402
 from stereocli.match.config import build_config  # noqa: E402
+from stereocli.match.kernels import set_threads as set_kernel_threads  # noqa: E402
 from stereocli.match.pipeline import match_pair  # noqa: E402
 from stereocli.process import keep_freed_memory, prepare_kernels  # noqa: E402
 
@@ -84,6 +85,7 @@ def main(argv=None) -> int:
 
     cv2.setNumThreads(args.threads)
     numba.set_num_threads(args.threads)
+    set_kernel_threads(args.threads)
     presets = [p for p in args.presets.split(",") if p]
     configs = {p: build_config([p], []) for p in presets}
     scenes = load_scenes(args.data, args.datasets.split(","), set(filter(None, args.scenes.split(","))))

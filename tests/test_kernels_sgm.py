@@ -131,18 +131,22 @@ def test_sgm_row_stripes_equal_whole_image_passes(height):
 
 
 def on_one_and_two_threads(run):
-    """``[run(), run()]`` with numba on one thread, then on two (where available); the
-    thread count is restored afterwards."""
+    """``[run(), run()]`` with the kernels on one thread, then on two (where available): numba's
+    ``prange`` kernels and the chunk kernels' pool alike; the thread counts are restored afterwards."""
     import numba
 
-    old = numba.get_num_threads()
+    from stereocli.match import kernels
+
+    old, old_chunks = numba.get_num_threads(), kernels._threads[0]
     results = []
     try:
         for threads in (1, min(2, numba.config.NUMBA_NUM_THREADS)):
             numba.set_num_threads(threads)
+            kernels.set_threads(threads)
             results.append(run())
     finally:
         numba.set_num_threads(old)
+        kernels.set_threads(old_chunks)
     return results
 
 

@@ -60,10 +60,10 @@ def check_odd_window(where: str, window: tuple[int, int], max_pixels: int | None
 
 
 def _bands() -> int:
-    import numba
+    from .kernels import kernel_threads
 
     # A few bands per thread balances the load; each band pays 2·radius extra rows.
-    return 4 * numba.get_num_threads()
+    return 4 * kernel_threads()
 
 
 def box_mean_image(image: np.ndarray, radius_y: int, radius_x: int) -> np.ndarray:

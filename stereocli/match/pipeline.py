@@ -501,6 +501,9 @@ def current_config() -> PipelineConfig | None:
 
 
 def _set_threads(threads: int) -> None:
+    from .kernels import set_threads
+
+    set_threads(threads)
     if threads > 0:
         import numba
 

@@ -7,11 +7,14 @@ right pixel is outside the image get ``cost_max``.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
+
+from . import chunk_kernel, for_rows
 
 
-@njit(cache=True, parallel=True)
-def _census_rows(image: np.ndarray, half_h: int, half_w: int) -> np.ndarray:
+@chunk_kernel
+def _census_rows(image: np.ndarray, half_h: int, half_w: int, out, y0: int, y1: int) -> None:
+    """:func:`census_transform` of rows ``[y0, y1)``, written into ``out``."""
     # The innermost loop runs along x over row slices with the window offset fixed, which LLVM
     # vectorises (about 10x faster than building each pixel's string in turn); the ``half_w``
     # columns at each side, whose neighbours are clamped to the border, take a scalar loop
@@ -19,11 +22,10 @@ def _census_rows(image: np.ndarray, half_h: int, half_w: int) -> np.ndarray:
     # neighbours in ``low`` and any before them in ``high``: lanes as wide as the float32
     # comparisons (a quarter faster than uint64 lanes).
     h, w = image.shape
-    out = np.empty((h, w), np.uint64)
     n_bits = (2 * half_h + 1) * (2 * half_w + 1) - 1
     x0 = min(half_w, w)  # interior columns [x0, x1): every neighbour inside the row
     x1 = max(w - half_w, x0)
-    for y in prange(h):
+    for y in range(y0, y1):
         high = np.zeros(w, np.uint32)
         low = np.zeros(w, np.uint32)
         centre = image[y]
@@ -46,7 +48,6 @@ def _census_rows(image: np.ndarray, half_h: int, half_w: int) -> np.ndarray:
                 bit += 1
         for x in range(w):
             out[y, x] = (np.uint64(high[x]) << np.uint64(32)) | np.uint64(low[x])
-    return out
 
 
 def census_transform(image: np.ndarray, half_h: int, half_w: int) -> np.ndarray:
@@ -57,7 +58,10 @@ def census_transform(image: np.ndarray, half_h: int, half_w: int) -> np.ndarray:
     hold up to 65 pixels. Neighbours outside the image are clamped to the border (replicate),
     so border pixels still get full-length strings.
     """
-    return _census_rows(np.ascontiguousarray(image, dtype=np.float32), int(half_h), int(half_w))
+    image = np.ascontiguousarray(image, dtype=np.float32)
+    out = np.empty(image.shape, np.uint64)
+    for_rows(_census_rows, image.shape[0], image, int(half_h), int(half_w), out)
+    return out
 
 
 @njit(cache=True, inline="always")
@@ -69,12 +73,13 @@ def _popcount64(v):
     return (v * np.uint64(0x0101010101010101)) >> np.uint64(56)
 
 
-@njit(cache=True, parallel=True)
-def _hamming_rows(census_left, census_right, min_disp: int, cost_max: float, out) -> None:
-    h, w = census_left.shape
+@chunk_kernel
+def _hamming_rows(census_left, census_right, min_disp: int, cost_max: float, out, y0: int, y1: int) -> None:
+    """:func:`hamming_volume` of rows ``[y0, y1)``, written into ``out``."""
+    w = census_left.shape[1]
     nd = out.shape[2]
     top = out.dtype.type(cost_max)
-    for y in prange(h):
+    for y in range(y0, y1):
         # The right row reversed, so hypothesis k reads forward: right[x − min_disp − k] =
         # reversed[w − 1 − x + min_disp + k] (contiguous loads; the loop vectorises).
         reversed_right = census_right[y, ::-1].copy()
@@ -96,18 +101,14 @@ def _hamming_rows(census_left, census_right, min_disp: int, cost_max: float, out
                     o[k] = _popcount64(cl ^ reversed_right[base + k]) if k0 <= k <= k1 else top
 
 
-@njit(cache=True, parallel=True)
-def hamming_runs(census_left, census_right, min_disp: int, cost_max: float, run_lo, run_hi, offset, n: int,
-                 right_valid):
-    """Hamming costs on each pixel's run of hypotheses ``[run_lo, run_hi)`` only, stored ragged
-    (pixel (y, x) at ``offset[y, x]``, uint8; the layout of
-    :mod:`stereocli.match.kernels.sgm_window`). ``cost_max`` where the right pixel is outside
-    the image or, if ``right_valid`` is not empty, outside its valid mask."""
-    h, w = census_left.shape
-    out = np.empty(n, np.uint8)
+@chunk_kernel
+def _hamming_runs_rows(census_left, census_right, min_disp: int, cost_max: float, run_lo, run_hi, offset,
+                       right_valid, out, y0: int, y1: int) -> None:
+    """:func:`hamming_runs` of rows ``[y0, y1)``, written into ``out``."""
+    w = census_left.shape[1]
     top = np.uint8(cost_max)
     masked = right_valid.shape[0] > 0
-    for y in prange(h):
+    for y in range(y0, y1):
         reversed_right = census_right[y, ::-1].copy()  # hypothesis k reads forward (as above)
         for x in range(w):
             cl = census_left[y, x]
@@ -130,6 +131,17 @@ def hamming_runs(census_left, census_right, min_disp: int, cost_max: float, run_
                 for k in range(k0, k1 + 1):
                     if not right_valid[y, x - min_disp - k]:
                         run[k - a] = top
+
+
+def hamming_runs(census_left, census_right, min_disp: int, cost_max: float, run_lo, run_hi, offset, n: int,
+                 right_valid):
+    """Hamming costs on each pixel's run of hypotheses ``[run_lo, run_hi)`` only, stored ragged
+    (pixel (y, x) at ``offset[y, x]``, uint8; the layout of
+    :mod:`stereocli.match.kernels.sgm_window`). ``cost_max`` where the right pixel is outside
+    the image or, if ``right_valid`` is not empty, outside its valid mask."""
+    out = np.empty(n, np.uint8)
+    for_rows(_hamming_runs_rows, census_left.shape[0], census_left, census_right, min_disp, cost_max, run_lo, run_hi,
+             offset, right_valid, out)
     return out
 
 
@@ -142,5 +154,5 @@ def hamming_volume(census_left: np.ndarray, census_right: np.ndarray, min_disp: 
     """
     h, w = census_left.shape
     out = np.empty((h, w, ndisp), dtype)
-    _hamming_rows(census_left, census_right, int(min_disp), float(cost_max), out)
+    for_rows(_hamming_rows, h, census_left, census_right, int(min_disp), float(cost_max), out)
     return out

@@ -31,9 +31,9 @@ matching phase read.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
-from . import prange_only
+from . import chunk_kernel, for_chunks, for_rows
 from .winners import _subpixel_offset
 
 INF = np.float32(np.inf)
@@ -159,7 +159,78 @@ def _col_update(col, x, left, ya, yr, fa, fo, nd, trunc, add, sub):
         _col_row(col, x, left, yr, fo, nd, trunc, -1)
 
 
-@njit(cache=True, parallel=True)
+@chunk_kernel
+def _sad_wta_chunk(left, right, right_valid, min_disp: int, ndisp: int, radius_y: int, radius_x: int, truncate: float,
+                   cost_max: float, band: int, keep_costs: bool, disp, wcost, chunk: int) -> None:
+    """:func:`sad_wta` of the band of rows ``chunk`` (``band`` rows each), written into ``disp`` and ``wcost``."""
+    h, w, nc = left.shape
+    nd = ndisp
+    trunc = np.float32(truncate)
+    cmax = np.float32(cost_max)
+    nu = w + nd - 1
+    y0 = chunk * band
+    y1 = min(h, y0 + band)
+    if y0 >= y1:
+        return
+    col = np.zeros((w + 1, nd), np.float32)  # row w stays 0: the column "outside" the image
+    acc = np.zeros(nd, np.float32)
+    cbuf = np.empty(nd, np.float32)
+    fa = np.empty((nc, nu), np.float32)
+    fo = np.empty((nc, nu), np.float32)
+    valid = np.empty(nu, np.uint8)
+    invs = np.empty(w, np.float32)
+    for yy in range(max(0, y0 - radius_y), min(h - 1, y0 + radius_y) + 1):
+        _reversed_row(right, yy, min_disp, nd, fa)
+        for x in range(w):
+            _col_row(col, x, left, yy, fa, nd, trunc, 1)
+    for y in range(y0, y1):
+        ya = y + radius_y
+        yr = y - radius_y - 1
+        add = y > y0 and ya < h
+        sub = y > y0 and yr >= 0
+        if add:
+            _reversed_row(right, ya, min_disp, nd, fa)
+        if sub:
+            _reversed_row(right, yr, min_disp, nd, fo)
+        _valid_row(right_valid, y, min_disp, nd, w, valid)
+        ny = min(h - 1, y + radius_y) - max(0, y - radius_y) + 1
+        # Columns 0..rx form the first window: step them to this row first; the others
+        # are stepped just before the running sum along x takes them in (still in cache).
+        for x in range(min(radius_x, w - 1) + 1):
+            _col_update(col, x, left, ya, yr, fa, fo, nd, trunc, add, sub)
+        for k in range(nd):
+            acc[k] = 0.0
+        for x in range(min(radius_x, w - 1) + 1):
+            for k in range(nd):
+                acc[k] += col[x, k]
+        for x in range(w):  # 1 / (channels · window pixels), the unfused kernel's factor
+            nx = min(w - 1, x + radius_x) - max(0, x - radius_x) + 1
+            invs[x] = np.float32(1.0 / (nx * ny * nc))
+        for x in range(w):
+            xa = x + radius_x + 1
+            xo = x - radius_x
+            if xa < w:
+                _col_update(col, xa, left, ya, yr, fa, fo, nd, trunc, add, sub)
+            inv = invs[x]
+            u0 = max(w - 1 - x, 0)
+            ia = max(xa if xa < w else w, 0)  # column entering the window (w: none)
+            io = max(xo if xo >= 0 else w, 0)  # column leaving it
+            best = np.int64(0x7FFFFFFFFFFFFFFF)
+            for k in range(nd):
+                # the volume entry: window mean, or cost_max when the right pixel is outside
+                c = acc[k] * inv if valid[u0 + k] else cmax
+                cbuf[k] = c
+                best = min(best, _key(c, k))
+                acc[k] += col[ia, k] - col[io, k]
+            kb = max(np.int64(best & 0xFFFFFFFF), 0)
+            bc = cbuf[kb]
+            disp[y, x] = INF if bc >= cmax else np.float32(min_disp + kb)
+            if keep_costs:
+                wcost[y, x, 0] = cbuf[max(kb - 1, 0)] if kb > 0 else cmax
+                wcost[y, x, 1] = bc
+                wcost[y, x, 2] = cbuf[kb + 1] if kb < nd - 1 else cmax
+
+
 def sad_wta(left: np.ndarray, right: np.ndarray, right_valid: np.ndarray, min_disp: int, ndisp: int,
             radius_y: int, radius_x: int, truncate: float, cost_max: float, nbands: int,
             keep_costs: bool = True):
@@ -182,77 +253,13 @@ def sad_wta(left: np.ndarray, right: np.ndarray, right_valid: np.ndarray, min_di
     disparity : (H, W) float32 integer-valued, +inf where the best cost is ``cost_max``.
     winner_costs : (H, W, 3) float32 costs at k − 1, k, k + 1 of the winner k.
     """
-    h, w, nc = left.shape
-    nd = ndisp
+    h, w = left.shape[0], left.shape[1]
     disp = np.empty((h, w), np.float32)
     wcost = np.empty((h if keep_costs else 0, w if keep_costs else 0, 3), np.float32)
-    trunc = np.float32(truncate)
-    cmax = np.float32(cost_max)
     nbands = max(1, min(nbands, h))
     band = (h + nbands - 1) // nbands
-    nu = w + nd - 1
-    for b in prange(nbands):
-        y0 = b * band
-        y1 = min(h, y0 + band)
-        if y0 >= y1:
-            continue
-        col = np.zeros((w + 1, nd), np.float32)  # row w stays 0: the column "outside" the image
-        acc = np.zeros(nd, np.float32)
-        cbuf = np.empty(nd, np.float32)
-        fa = np.empty((nc, nu), np.float32)
-        fo = np.empty((nc, nu), np.float32)
-        valid = np.empty(nu, np.uint8)
-        invs = np.empty(w, np.float32)
-        for yy in range(max(0, y0 - radius_y), min(h - 1, y0 + radius_y) + 1):
-            _reversed_row(right, yy, min_disp, nd, fa)
-            for x in range(w):
-                _col_row(col, x, left, yy, fa, nd, trunc, 1)
-        for y in range(y0, y1):
-            ya = y + radius_y
-            yr = y - radius_y - 1
-            add = y > y0 and ya < h
-            sub = y > y0 and yr >= 0
-            if add:
-                _reversed_row(right, ya, min_disp, nd, fa)
-            if sub:
-                _reversed_row(right, yr, min_disp, nd, fo)
-            _valid_row(right_valid, y, min_disp, nd, w, valid)
-            ny = min(h - 1, y + radius_y) - max(0, y - radius_y) + 1
-            # Columns 0..rx form the first window: step them to this row first; the others
-            # are stepped just before the running sum along x takes them in (still in cache).
-            for x in range(min(radius_x, w - 1) + 1):
-                _col_update(col, x, left, ya, yr, fa, fo, nd, trunc, add, sub)
-            for k in range(nd):
-                acc[k] = 0.0
-            for x in range(min(radius_x, w - 1) + 1):
-                for k in range(nd):
-                    acc[k] += col[x, k]
-            for x in range(w):  # 1 / (channels · window pixels), the unfused kernel's factor
-                nx = min(w - 1, x + radius_x) - max(0, x - radius_x) + 1
-                invs[x] = np.float32(1.0 / (nx * ny * nc))
-            for x in range(w):
-                xa = x + radius_x + 1
-                xo = x - radius_x
-                if xa < w:
-                    _col_update(col, xa, left, ya, yr, fa, fo, nd, trunc, add, sub)
-                inv = invs[x]
-                u0 = max(w - 1 - x, 0)
-                ia = max(xa if xa < w else w, 0)  # column entering the window (w: none)
-                io = max(xo if xo >= 0 else w, 0)  # column leaving it
-                best = np.int64(0x7FFFFFFFFFFFFFFF)
-                for k in range(nd):
-                    # the volume entry: window mean, or cost_max when the right pixel is outside
-                    c = acc[k] * inv if valid[u0 + k] else cmax
-                    cbuf[k] = c
-                    best = min(best, _key(c, k))
-                    acc[k] += col[ia, k] - col[io, k]
-                kb = max(np.int64(best & 0xFFFFFFFF), 0)
-                bc = cbuf[kb]
-                disp[y, x] = INF if bc >= cmax else np.float32(min_disp + kb)
-                if keep_costs:
-                    wcost[y, x, 0] = cbuf[max(kb - 1, 0)] if kb > 0 else cmax
-                    wcost[y, x, 1] = bc
-                    wcost[y, x, 2] = cbuf[kb + 1] if kb < nd - 1 else cmax
+    for_chunks(_sad_wta_chunk, nbands, left, right, right_valid, min_disp, ndisp, radius_y, radius_x, truncate,
+               cost_max, band, keep_costs, disp, wcost)
     return disp, wcost
 
 
@@ -260,21 +267,12 @@ def sad_wta(left: np.ndarray, right: np.ndarray, right_valid: np.ndarray, min_di
 # stereocli.match.refine_local) -------------------------------------------------------------
 
 
-@njit(cache=True, parallel=prange_only())
-def subpixel_winner(wdisp: np.ndarray, wcosts: np.ndarray, disp: np.ndarray, min_disp: int, ndisp: int,
-                    equiangular: bool, left: bool = True):
-    """:func:`~stereocli.match.kernels.winners.subpixel_left` on the winner costs.
-
-    Same rule (fit through the costs at k − 1, k, k + 1 with ``k = int(disp) − min_disp``, ends
-    of the range and neighbours outside the image keep the integer). Returns ``(refined,
-    missing)``; ``missing`` counts pixels whose ``k`` is not the WTA winner (left unchanged).
-    ``left=False`` for a right-view map, whose neighbours outside the image are already
-    marked in ``wcosts`` (both equal to the winner's cost, so the fit keeps the integer).
-    """
-    h, w = disp.shape
-    out = disp.copy()
-    missing = np.zeros(h, np.int64)
-    for y in prange(h):
+@chunk_kernel
+def _subpixel_winner_rows(wdisp, wcosts, disp, min_disp: int, ndisp: int, equiangular: bool, left: bool, out,
+                          missing, y0: int, y1: int) -> None:
+    """:func:`subpixel_winner` of rows ``[y0, y1)``: refined values into ``out``, counts into ``missing[y]``."""
+    w = disp.shape[1]
+    for y in range(y0, y1):
         for x in range(w):
             d = disp[y, x]
             if not np.isfinite(d):
@@ -288,4 +286,20 @@ def subpixel_winner(wdisp: np.ndarray, wcosts: np.ndarray, disp: np.ndarray, min
                 continue
             off = _subpixel_offset(wcosts[y, x, 0], wcosts[y, x, 1], wcosts[y, x, 2], equiangular)
             out[y, x] = np.float32(d + off)
-    return out, missing.sum()
+
+
+def subpixel_winner(wdisp: np.ndarray, wcosts: np.ndarray, disp: np.ndarray, min_disp: int, ndisp: int,
+                    equiangular: bool, left: bool = True):
+    """:func:`~stereocli.match.kernels.winners.subpixel_left` on the winner costs.
+
+    Same rule (fit through the costs at k − 1, k, k + 1 with ``k = int(disp) − min_disp``, ends
+    of the range and neighbours outside the image keep the integer). Returns ``(refined,
+    missing)``; ``missing`` counts pixels whose ``k`` is not the WTA winner (left unchanged).
+    ``left=False`` for a right-view map, whose neighbours outside the image are already
+    marked in ``wcosts`` (both equal to the winner's cost, so the fit keeps the integer).
+    """
+    h = disp.shape[0]
+    out = disp.copy()
+    missing = np.zeros(h, np.int64)
+    for_rows(_subpixel_winner_rows, h, wdisp, wcosts, disp, min_disp, ndisp, equiangular, left, out, missing)
+    return out, int(missing.sum())

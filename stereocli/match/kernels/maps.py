@@ -5,12 +5,11 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from . import prange_only
+from . import chunk_kernel, for_rows, prange_only
 
 INF = np.float32(np.inf)
 
 
-@njit(cache=True)
 def lr_check(disp_left: np.ndarray, disp_right: np.ndarray, max_diff: float) -> np.ndarray:
     """Invalidate left disparities that the right view does not confirm.
 
@@ -20,15 +19,11 @@ def lr_check(disp_left: np.ndarray, disp_right: np.ndarray, max_diff: float) -> 
     return lr_check_onto(disp_left, disp_right, max_diff, disp_left)
 
 
-@njit(cache=True, parallel=prange_only())
-def lr_check_onto(disp_left: np.ndarray, disp_right: np.ndarray, max_diff: float,
-                  target: np.ndarray) -> np.ndarray:
-    """A copy of ``target`` (H, W) with +inf where the pair ``disp_left``/``disp_right`` fails
-    the check of :func:`lr_check` (e.g. the check decided on the integer winners, applied to
-    the sub-pixel map); pixels where ``disp_left`` is invalid keep their ``target`` value."""
-    h, w = disp_left.shape
-    out = target.copy()
-    for y in prange(h):
+@chunk_kernel
+def _lr_check_onto_rows(disp_left, disp_right, max_diff: float, out, y0: int, y1: int) -> None:
+    """:func:`lr_check_onto` on rows ``y0`` to ``y1`` (exclusive) of ``out``."""
+    w = disp_left.shape[1]
+    for y in range(y0, y1):
         for x in range(w):
             d = disp_left[y, x]
             if not np.isfinite(d):
@@ -40,22 +35,25 @@ def lr_check_onto(disp_left: np.ndarray, disp_right: np.ndarray, max_diff: float
             dr = disp_right[y, xr]
             if not np.isfinite(dr) or abs(d - dr) > max_diff:
                 out[y, x] = INF
+
+
+def lr_check_onto(disp_left: np.ndarray, disp_right: np.ndarray, max_diff: float,
+                  target: np.ndarray) -> np.ndarray:
+    """A copy of ``target`` (H, W) with +inf where the pair ``disp_left``/``disp_right`` fails
+    the check of :func:`lr_check` (e.g. the check decided on the integer winners, applied to
+    the sub-pixel map); pixels where ``disp_left`` is invalid keep their ``target`` value."""
+    out = target.copy()
+    for_rows(_lr_check_onto_rows, disp_left.shape[0], disp_left, disp_right, float(max_diff), out)
     return out
 
 
-@njit(cache=True, parallel=prange_only())
-def fill_background(disp: np.ndarray) -> np.ndarray:
-    """Fill invalid pixels along each row with the smaller (background) of the nearest valid
-    disparities to the left and right; rows with no valid pixel stay invalid.
-
-    Occlusions next to a foreground object belong to the background surface, hence the minimum
-    (Hirschmüller 2008, §2.5 / the KITTI devkit's background interpolation).
-    """
-    h, w = disp.shape
-    out = disp.copy()
-    for y in prange(h):
+@chunk_kernel
+def _fill_background_rows(disp, out, y0: int, y1: int) -> None:
+    """:func:`fill_background` on rows ``y0`` to ``y1`` (exclusive) of ``out``."""
+    w = disp.shape[1]
+    left_val = np.empty(w, np.float32)
+    for y in range(y0, y1):
         last = INF
-        left_val = np.empty(w, np.float32)
         for x in range(w):
             if np.isfinite(disp[y, x]):
                 last = disp[y, x]
@@ -72,6 +70,17 @@ def fill_background(disp: np.ndarray) -> np.ndarray:
                     out[y, x] = a
                 else:
                     out[y, x] = nxt
+
+
+def fill_background(disp: np.ndarray) -> np.ndarray:
+    """Fill invalid pixels along each row with the smaller (background) of the nearest valid
+    disparities to the left and right; rows with no valid pixel stay invalid.
+
+    Occlusions next to a foreground object belong to the background surface, hence the minimum
+    (Hirschmüller 2008, §2.5 / the KITTI devkit's background interpolation).
+    """
+    out = disp.copy()
+    for_rows(_fill_background_rows, disp.shape[0], disp, out)
     return out
 
 

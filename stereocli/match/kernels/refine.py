@@ -8,9 +8,9 @@ Cost volumes may be float32 or uint16 (SGM sums); values are read as float64.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
-from . import prange_only
+from . import chunk_kernel, for_chunks, for_rows
 from .aggregation import channel_planes
 
 INF = np.float32(np.inf)
@@ -68,18 +68,12 @@ def _first_min(row, k0: int, k1: int) -> int:
     return k0
 
 
-@njit(cache=True, parallel=True)
-def uniqueness(cost, disp, min_disp: int, ratio: float) -> np.ndarray:
-    """Invalidate pixels whose best cost is not clearly below every non-adjacent hypothesis.
-
-    OpenCV's rule: reject when some ``d`` with ``|d − d_best| > 1`` has
-    ``cost[d] · (1 − ratio) < cost_best``. ``d_best`` is the volume's own minimum (the
-    stage may run after sub-pixel refinement). Returns a new float32 map.
-    """
-    h, w, nd = cost.shape
-    out = disp.copy()
+@chunk_kernel
+def _uniqueness_rows(cost, disp, min_disp: int, ratio: float, out, y0: int, y1: int) -> None:
+    """:func:`uniqueness` on rows ``y0`` to ``y1`` (exclusive) of ``out``."""
+    _, w, nd = cost.shape
     keep = 1.0 - ratio
-    for y in prange(h):
+    for y in range(y0, y1):
         for x in range(w):
             if not np.isfinite(disp[y, x]):
                 continue
@@ -92,20 +86,36 @@ def uniqueness(cost, disp, min_disp: int, ratio: float) -> np.ndarray:
             second = min(_range_min(row, k0, bk - 2), _range_min(row, bk + 2, k1))
             if second * keep < bc:
                 out[y, x] = INF
+
+
+def uniqueness(cost, disp, min_disp: int, ratio: float) -> np.ndarray:
+    """Invalidate pixels whose best cost is not clearly below every non-adjacent hypothesis.
+
+    OpenCV's rule: reject when some ``d`` with ``|d − d_best| > 1`` has
+    ``cost[d] · (1 − ratio) < cost_best``. ``d_best`` is the volume's own minimum (the
+    stage may run after sub-pixel refinement). Returns a new float32 map.
+    """
+    out = disp.copy()
+    for_rows(_uniqueness_rows, cost.shape[0], cost, disp, min_disp, ratio, out)
     return out
 
 
-@njit(cache=True, parallel=True)
-def uniqueness_from_second(best, second, disp, ratio: float) -> np.ndarray:
-    """:func:`uniqueness` from each pixel's winning cost and its best cost beyond ±1 ((H, W)
-    float32 each, +inf where there is none)."""
-    h, w = disp.shape
-    out = disp.copy()
+@chunk_kernel
+def _uniqueness_from_second_rows(best, second, disp, ratio: float, out, y0: int, y1: int) -> None:
+    """:func:`uniqueness_from_second` on rows ``y0`` to ``y1`` (exclusive) of ``out``."""
+    w = disp.shape[1]
     keep = 1.0 - ratio
-    for y in prange(h):
+    for y in range(y0, y1):
         for x in range(w):
             if np.isfinite(disp[y, x]) and np.float64(second[y, x]) * keep < np.float64(best[y, x]):
                 out[y, x] = INF
+
+
+def uniqueness_from_second(best, second, disp, ratio: float) -> np.ndarray:
+    """:func:`uniqueness` from each pixel's winning cost and its best cost beyond ±1 ((H, W)
+    float32 each, +inf where there is none)."""
+    out = disp.copy()
+    for_rows(_uniqueness_from_second_rows, disp.shape[0], best, second, disp, ratio, out)
     return out
 
 
@@ -123,35 +133,36 @@ def _confidence_value(bc: float, sc: float, d: float, x: int, y: int, disp_right
     return c
 
 
-@njit(cache=True, parallel=True)
+@chunk_kernel
+def _confidence_from_second_rows(best, second, disp, disp_right, has_right: bool, lr_scale: float,
+                                 margin_scale: float, conf, y0: int, y1: int) -> None:
+    """:func:`confidence_from_second` on rows ``y0`` to ``y1`` (exclusive) of ``conf``."""
+    w = disp.shape[1]
+    for y in range(y0, y1):
+        for x in range(w):
+            d = disp[y, x]
+            if np.isfinite(d):
+                conf[y, x] = np.float32(_confidence_value(np.float64(best[y, x]), np.float64(second[y, x]), d, x, y,
+                                                          disp_right, has_right, lr_scale, margin_scale))
+
+
 def confidence_from_second(best, second, disp, disp_right, lr_scale: float, margin_scale: float) -> np.ndarray:
     """:func:`confidence` from each pixel's winning cost and its best cost beyond ±1 ((H, W)
     float32 each, +inf where there is none)."""
     h, w = disp.shape
     conf = np.zeros((h, w), np.float32)
     has_right = disp_right.shape[0] == h and disp_right.shape[1] == w
-    for y in prange(h):
-        for x in range(w):
-            d = disp[y, x]
-            if np.isfinite(d):
-                conf[y, x] = np.float32(_confidence_value(np.float64(best[y, x]), np.float64(second[y, x]), d, x, y,
-                                                          disp_right, has_right, lr_scale, margin_scale))
+    for_rows(_confidence_from_second_rows, h, best, second, disp, disp_right, has_right, lr_scale, margin_scale,
+             conf)
     return conf
 
 
-@njit(cache=True, parallel=True)
-def confidence(cost, disp, disp_right, min_disp: int, lr_scale: float, margin_scale: float) -> np.ndarray:
-    """Per-pixel confidence in [0, 1]: cost uniqueness × left-right agreement.
-
-    Uniqueness ``u = 1 − c_best / c_second`` (``c_second``: best hypothesis with
-    ``|d − d_best| > 1``, the "PKRN" ratio), mapped as ``min(1, u / margin_scale)``. LR term
-    ``exp(−|d_L − d_R(x − d_L)| / lr_scale)`` when ``disp_right`` is given (size > 0), else 1.
-    Invalid pixels get 0.
-    """
-    h, w, nd = cost.shape
-    conf = np.zeros((h, w), np.float32)
-    has_right = disp_right.shape[0] == h and disp_right.shape[1] == w
-    for y in prange(h):
+@chunk_kernel
+def _confidence_rows(cost, disp, disp_right, has_right: bool, min_disp: int, lr_scale: float, margin_scale: float,
+                     conf, y0: int, y1: int) -> None:
+    """:func:`confidence` on rows ``y0`` to ``y1`` (exclusive) of ``conf``."""
+    _, w, nd = cost.shape
+    for y in range(y0, y1):
         for x in range(w):
             d = disp[y, x]
             if not np.isfinite(d):
@@ -164,26 +175,35 @@ def confidence(cost, disp, disp_right, min_disp: int, lr_scale: float, margin_sc
             bc = np.float64(row[bk])
             sc = min(_range_min(row, k0, bk - 2), _range_min(row, bk + 2, k1))
             conf[y, x] = np.float32(_confidence_value(bc, sc, d, x, y, disp_right, has_right, lr_scale, margin_scale))
+
+
+def confidence(cost, disp, disp_right, min_disp: int, lr_scale: float, margin_scale: float) -> np.ndarray:
+    """Per-pixel confidence in [0, 1]: cost uniqueness × left-right agreement.
+
+    Uniqueness ``u = 1 − c_best / c_second`` (``c_second``: best hypothesis with
+    ``|d − d_best| > 1``, the "PKRN" ratio), mapped as ``min(1, u / margin_scale)``. LR term
+    ``exp(−|d_L − d_R(x − d_L)| / lr_scale)`` when ``disp_right`` is given (size > 0), else 1.
+    Invalid pixels get 0.
+    """
+    h, w, _ = cost.shape
+    conf = np.zeros((h, w), np.float32)
+    has_right = disp_right.shape[0] == h and disp_right.shape[1] == w
+    for_rows(_confidence_rows, h, cost, disp, disp_right, has_right, min_disp, lr_scale, margin_scale, conf)
     return conf
 
 
-@njit(cache=True, parallel=True)
-def classify_holes(disp, disp_right, min_disp: int, max_disp: int, tol: float) -> np.ndarray:
-    """Label invalid left pixels: 0 valid, 1 occluded, 2 mismatched (Hirschmüller 2008 §2.5).
-
-    A hole is *mismatched* when some right pixel ``x − d`` claims it, i.e.
-    ``|disp_right[y, x − d] − d| ≤ tol`` for a ``d`` in the search range (the epipolar line
-    intersects the right disparity function); otherwise nothing in the right view sees it and it
-    is *occluded*. Without a right map (size 0) every hole is treated as occluded.
-    """
-    h, w = disp.shape
-    label = np.zeros((h, w), np.uint8)
-    has_right = disp_right.shape[0] == h and disp_right.shape[1] == w
-    for y in prange(h):
+@chunk_kernel
+def _classify_holes_rows(disp, disp_right, has_right: bool, min_disp: int, max_disp: int, tol: float, label,
+                         y0: int, y1: int) -> None:
+    """:func:`classify_holes` on rows ``y0`` to ``y1`` (exclusive) of ``label``."""
+    w = disp.shape[1]
+    claimed = np.empty(w, np.bool_)
+    for y in range(y0, y1):
         # Scatter from the right view instead of searching every d for every hole: right
         # pixel xr with disparity v claims x = xr + d for each integer d in [v − tol, v + tol]
         # inside the range — the same set of (x, d) pairs, O(W·tol) per row.
-        claimed = np.zeros(w, np.bool_)
+        for x in range(w):
+            claimed[x] = False
         if has_right:
             for xr in range(w):
                 v = disp_right[y, xr]
@@ -198,6 +218,20 @@ def classify_holes(disp, disp_right, min_disp: int, max_disp: int, tol: float) -
         for x in range(w):
             if not np.isfinite(disp[y, x]):
                 label[y, x] = 2 if claimed[x] else 1
+
+
+def classify_holes(disp, disp_right, min_disp: int, max_disp: int, tol: float) -> np.ndarray:
+    """Label invalid left pixels: 0 valid, 1 occluded, 2 mismatched (Hirschmüller 2008 §2.5).
+
+    A hole is *mismatched* when some right pixel ``x − d`` claims it, i.e.
+    ``|disp_right[y, x − d] − d| ≤ tol`` for a ``d`` in the search range (the epipolar line
+    intersects the right disparity function); otherwise nothing in the right view sees it and it
+    is *occluded*. Without a right map (size 0) every hole is treated as occluded.
+    """
+    h, w = disp.shape
+    label = np.zeros((h, w), np.uint8)
+    has_right = disp_right.shape[0] == h and disp_right.shape[1] == w
+    for_rows(_classify_holes_rows, h, disp, disp_right, has_right, min_disp, max_disp, tol, label)
     return label
 
 
@@ -225,18 +259,18 @@ def _nearest_along(disp, dy: int, dx: int, value, dist) -> None:
                 dist[y, x] = 0
 
 
-@njit(cache=True, parallel=True)
-def _nearest_all(disp, value, dist) -> None:
-    for k in prange(8):
-        _nearest_along(disp, DIRECTIONS8[k, 0], DIRECTIONS8[k, 1], value[k], dist[k])
+@chunk_kernel
+def _nearest_all_chunk(disp, value, dist, k: int) -> None:
+    """The nearest valid values along direction ``k`` of :data:`DIRECTIONS8`."""
+    _nearest_along(disp, DIRECTIONS8[k, 0], DIRECTIONS8[k, 1], value[k], dist[k])
 
 
-@njit(cache=True, parallel=True)
-def _fill_from_nearest(disp, label, value, dist, limit: int) -> np.ndarray:
-    h, w = disp.shape
-    out = disp.copy()
-    for y in prange(h):
-        buf = np.empty(8, np.float32)
+@chunk_kernel
+def _fill_from_nearest_rows(disp, label, value, dist, limit: int, out, y0: int, y1: int) -> None:
+    """:func:`interpolate_holes` on rows ``y0`` to ``y1`` (exclusive) of ``out``."""
+    w = disp.shape[1]
+    buf = np.empty(8, np.float32)
+    for y in range(y0, y1):
         for x in range(w):
             lab = label[y, x]
             if lab == 0:
@@ -252,7 +286,6 @@ def _fill_from_nearest(disp, label, value, dist, limit: int) -> np.ndarray:
                 out[y, x] = buf[1] if n > 1 else buf[0]
             else:
                 out[y, x] = _sorted_median(buf, n)
-    return out
 
 
 def interpolate_holes(disp: np.ndarray, label: np.ndarray, max_dist: int) -> np.ndarray:
@@ -266,20 +299,19 @@ def interpolate_holes(disp: np.ndarray, label: np.ndarray, max_dist: int) -> np.
     h, w = disp.shape
     value = np.empty((8, h, w), np.float32)
     dist = np.empty((8, h, w), np.int32)
-    _nearest_all(disp, value, dist)
+    for_chunks(_nearest_all_chunk, 8, disp, value, dist)
     limit = max(h, w) if max_dist <= 0 else max_dist
-    return _fill_from_nearest(disp, label, value, dist, int(limit))
+    out = disp.copy()
+    for_rows(_fill_from_nearest_rows, h, disp, label, value, dist, int(limit), out)
+    return out
 
 
-@njit(cache=True, parallel=prange_only())
-def _median_valid_where(disp: np.ndarray, radius: int, todo: np.ndarray, out: np.ndarray) -> None:
-    # General case at the pixels flagged in ``todo``: median of the finite values of the
-    # window clipped to the image (insertion sort in a fixed buffer); the mean of the two
-    # middle values for an even count; invalid centres stay invalid.
+@chunk_kernel
+def _median_valid_where_rows(disp, radius: int, todo, out, y0: int, y1: int) -> None:
+    """:func:`_median_valid_where` on rows ``y0`` to ``y1`` (exclusive)."""
     h, w = disp.shape
-    size = (2 * radius + 1) ** 2
-    for y in prange(h):
-        buf = np.empty(size, np.float32)
+    buf = np.empty((2 * radius + 1) ** 2, np.float32)
+    for y in range(y0, y1):
         for x in range(w):
             if not todo[y, x] or not np.isfinite(disp[y, x]):
                 continue
@@ -290,6 +322,13 @@ def _median_valid_where(disp: np.ndarray, radius: int, todo: np.ndarray, out: np
                     if np.isfinite(v):
                         n = _insert_sorted(buf, n, v)
             out[y, x] = _sorted_median(buf, n)
+
+
+def _median_valid_where(disp: np.ndarray, radius: int, todo: np.ndarray, out: np.ndarray) -> None:
+    # General case at the pixels flagged in ``todo``: median of the finite values of the
+    # window clipped to the image (insertion sort in a fixed buffer); the mean of the two
+    # middle values for an even count; invalid centres stay invalid.
+    for_rows(_median_valid_where_rows, disp.shape[0], disp, radius, todo, out)
 
 
 def median_valid(disp: np.ndarray, radius: int) -> np.ndarray:
@@ -319,15 +358,14 @@ def median_valid(disp: np.ndarray, radius: int) -> np.ndarray:
     return out
 
 
-@njit(cache=True, parallel=True)
-def joint_bilateral(disp, guide, radius: int, sigma_space: float, sigma_color: float) -> np.ndarray:
-    """Edge-preserving smoothing of valid disparities, weights from the (grey) guide image:
-    ``exp(−r²/2σs² − ΔI²/2σc²)`` over finite neighbours; invalid centres stay invalid."""
+@chunk_kernel
+def _joint_bilateral_rows(disp, guide, radius: int, sigma_space: float, sigma_color: float, out,
+                          y0: int, y1: int) -> None:
+    """:func:`joint_bilateral` on rows ``y0`` to ``y1`` (exclusive) of ``out``."""
     h, w = disp.shape
-    out = disp.copy()
     ks = -0.5 / (sigma_space * sigma_space)
     kc = -0.5 / (sigma_color * sigma_color)
-    for y in prange(h):
+    for y in range(y0, y1):
         for x in range(w):
             if not np.isfinite(disp[y, x]):
                 continue
@@ -344,29 +382,41 @@ def joint_bilateral(disp, guide, radius: int, sigma_space: float, sigma_color: f
                     sw += wt
                     sv += wt * v
             out[y, x] = np.float32(sv / sw)
+
+
+def joint_bilateral(disp, guide, radius: int, sigma_space: float, sigma_color: float) -> np.ndarray:
+    """Edge-preserving smoothing of valid disparities, weights from the (grey) guide image:
+    ``exp(−r²/2σs² − ΔI²/2σc²)`` over finite neighbours; invalid centres stay invalid."""
+    out = disp.copy()
+    for_rows(_joint_bilateral_rows, disp.shape[0], disp, guide, radius, sigma_space, sigma_color, out)
     return out
 
 
-@njit(cache=True, parallel=True, error_model="numpy")
-def _line_fit_pass(disp, image, radius: int, vertical: bool, sigma_space: float, color_range: float,
-                   gate: float) -> np.ndarray:
-    # One 1-D pass of plane_smooth, along rows (vertical=False) or columns. Loops run over
-    # whole rows for each offset t so they vectorise.
+@chunk_kernel
+def _line_fit_pass_rows(disp, image, radius: int, vertical: bool, sigma_space: float, color_range: float,
+                        gate: float, out, y0: int, y1: int) -> None:
+    """:func:`_line_fit_pass` on rows ``y0`` to ``y1`` (exclusive) of ``out``."""
     h, w = disp.shape
     nc = image.shape[0]
     inv_range2 = np.float32(1.0 / (color_range * color_range))
     step_y = 1 if vertical else 0
     step_x = 1 - step_y
-    out = np.empty_like(disp)
-    for y in prange(h):
+    # Row buffers allocated once per range of rows, not once per row.
+    s = np.empty(w, np.float32)
+    st = np.empty(w, np.float32)
+    stt = np.empty(w, np.float32)
+    sv = np.empty(w, np.float32)
+    stv = np.empty(w, np.float32)
+    dist2 = np.empty(w, np.float32)
+    for y in range(y0, y1):
         # Weighted moments about each pixel of the row (t = offset along the line), values
         # relative to the pixel's own disparity so the sums stay well conditioned.
-        s = np.zeros(w, np.float32)
-        st = np.zeros(w, np.float32)
-        stt = np.zeros(w, np.float32)
-        sv = np.zeros(w, np.float32)
-        stv = np.zeros(w, np.float32)
-        dist2 = np.empty(w, np.float32)
+        for x in range(w):
+            s[x] = 0.0
+            st[x] = 0.0
+            stt[x] = 0.0
+            sv[x] = 0.0
+            stv[x] = 0.0
         d0 = disp[y]
         for t in range(-radius, radius + 1):
             yy = y + t * step_y
@@ -424,6 +474,14 @@ def _line_fit_pass(disp, image, radius: int, vertical: bool, sigma_space: float,
             else:
                 corr = sv[x] / s[x]
             out[y, x] = d0[x] + min(max(corr, -gate), gate)
+
+
+def _line_fit_pass(disp, image, radius: int, vertical: bool, sigma_space: float, color_range: float,
+                   gate: float) -> np.ndarray:
+    # One 1-D pass of plane_smooth, along rows (vertical=False) or columns. Loops run over
+    # whole rows for each offset t so they vectorise.
+    out = np.empty(disp.shape, disp.dtype)
+    for_rows(_line_fit_pass_rows, disp.shape[0], disp, image, radius, vertical, sigma_space, color_range, gate, out)
     return out
 
 
@@ -475,47 +533,48 @@ def _resolve_row(disp, out, y, claims, min_disp, ndisp, owner, owner_cost):
             out[y, x] = INF
 
 
-@njit(cache=True, parallel=True)
-def single_matching_phase_kernel(disp: np.ndarray, cost: np.ndarray, min_disp: int) -> np.ndarray:
-    """One left→right pass per row; when two left pixels claim the same right pixel, the one
-    with the lower cost keeps it and the other becomes +inf (Di Stefano, Marchionni &
-    Mattoccia, IVC 2004, §3). ``disp`` holds integer-valued float32 disparities (+inf invalid);
-    ``cost`` is the (H, W, D) volume (float32 or uint16).
-    """
-    h, w = disp.shape
+@chunk_kernel
+def _single_matching_phase_rows(disp, cost, min_disp: int, out, y0: int, y1: int) -> None:
+    """:func:`single_matching_phase_kernel` on rows ``y0`` to ``y1`` (exclusive) of ``out``."""
+    w = disp.shape[1]
     nd = cost.shape[2]
-    out = disp.copy()
-    for y in prange(h):
-        owner = np.empty(w, np.int64)
-        owner_cost = np.empty(w, np.float32)
-        claims = np.zeros(w, np.float32)
+    owner = np.empty(w, np.int64)
+    owner_cost = np.empty(w, np.float32)
+    claims = np.empty(w, np.float32)
+    for y in range(y0, y1):
         for x in range(w):
+            claims[x] = 0.0
             d = disp[y, x]
             if np.isfinite(d):
                 k = int(np.floor(d + 0.5)) - min_disp
                 if 0 <= k < nd:
                     claims[x] = cost[y, x, k]
         _resolve_row(disp, out, y, claims, min_disp, nd, owner, owner_cost)
+
+
+def single_matching_phase_kernel(disp: np.ndarray, cost: np.ndarray, min_disp: int) -> np.ndarray:
+    """One left→right pass per row; when two left pixels claim the same right pixel, the one
+    with the lower cost keeps it and the other becomes +inf (Di Stefano, Marchionni &
+    Mattoccia, IVC 2004, §3). ``disp`` holds integer-valued float32 disparities (+inf invalid);
+    ``cost`` is the (H, W, D) volume (float32 or uint16).
+    """
+    out = disp.copy()
+    for_rows(_single_matching_phase_rows, disp.shape[0], disp, cost, min_disp, out)
     return out
 
 
-@njit(cache=True, parallel=True)
-def single_matching_phase_winner_kernel(disp: np.ndarray, wdisp: np.ndarray, wcosts: np.ndarray,
-                                        min_disp: int, ndisp: int):
-    """:func:`single_matching_phase_kernel` with the claim costs read from the costs kept around
-    each WTA winner (fused cost + WTA path, :class:`~stereocli.match.state.WinnerCosts`).
-
-    Returns ``(out, missing)``; ``missing`` counts pixels whose ``round(disp)`` is more than 1
-    from the winner ``wdisp`` (none right after WTA or sub-pixel refinement).
-    """
-    h, w = disp.shape
-    out = disp.copy()
-    missing = np.zeros(h, np.int64)
-    for y in prange(h):
-        owner = np.empty(w, np.int64)
-        owner_cost = np.empty(w, np.float32)
-        claims = np.zeros(w, np.float32)
+@chunk_kernel
+def _single_matching_phase_winner_rows(disp, wdisp, wcosts, min_disp: int, ndisp: int, out, missing,
+                                       y0: int, y1: int) -> None:
+    """:func:`single_matching_phase_winner_kernel` on rows ``y0`` to ``y1`` (exclusive) of ``out``
+    and ``missing``."""
+    w = disp.shape[1]
+    owner = np.empty(w, np.int64)
+    owner_cost = np.empty(w, np.float32)
+    claims = np.empty(w, np.float32)
+    for y in range(y0, y1):
         for x in range(w):
+            claims[x] = 0.0
             d = disp[y, x]
             if np.isfinite(d):
                 k = int(np.floor(d + 0.5)) - min_disp
@@ -526,26 +585,35 @@ def single_matching_phase_winner_kernel(disp: np.ndarray, wdisp: np.ndarray, wco
                     else:
                         missing[y] += 1
         _resolve_row(disp, out, y, claims, min_disp, ndisp, owner, owner_cost)
-    return out, missing.sum()
 
 
-@njit(cache=True, parallel=True)
-def weighted_median_at(disp: np.ndarray, todo: np.ndarray, guide: np.ndarray, radius: int,
-                       sigma_s: float, sigma_c: float) -> np.ndarray:
-    """Bilateral-weighted median of the finite disparities around each ``todo`` pixel.
+def single_matching_phase_winner_kernel(disp: np.ndarray, wdisp: np.ndarray, wcosts: np.ndarray,
+                                        min_disp: int, ndisp: int):
+    """:func:`single_matching_phase_kernel` with the claim costs read from the costs kept around
+    each WTA winner (fused cost + WTA path, :class:`~stereocli.match.state.WinnerCosts`).
 
-    Weight exp(−Δs²/σ_s² − ‖ΔI‖²/σ_c²) with ‖ΔI‖ the colour distance in ``guide`` (H, W, C)
-    (Hosni et al. 2013, §4.1). Other pixels are copied unchanged.
+    Returns ``(out, missing)``; ``missing`` counts pixels whose ``round(disp)`` is more than 1
+    from the winner ``wdisp`` (none right after WTA or sub-pixel refinement).
     """
+    h = disp.shape[0]
+    out = disp.copy()
+    missing = np.zeros(h, np.int64)
+    for_rows(_single_matching_phase_winner_rows, h, disp, wdisp, wcosts, min_disp, ndisp, out, missing)
+    return out, int(missing.sum())
+
+
+@chunk_kernel
+def _weighted_median_at_rows(disp, todo, guide, radius: int, sigma_s: float, sigma_c: float, out,
+                             y0: int, y1: int) -> None:
+    """:func:`weighted_median_at` on rows ``y0`` to ``y1`` (exclusive) of ``out``."""
     h, w = disp.shape
     nc = guide.shape[2]
-    out = disp.copy()
     n = (2 * radius + 1) ** 2
     inv_s = 1.0 / (sigma_s * sigma_s)
     inv_c = 1.0 / (sigma_c * sigma_c)
-    for y in prange(h):
-        vals = np.empty(n, np.float32)
-        wts = np.empty(n, np.float64)
+    vals = np.empty(n, np.float32)
+    wts = np.empty(n, np.float64)
+    for y in range(y0, y1):
         for x in range(w):
             if not todo[y, x]:
                 continue
@@ -574,4 +642,15 @@ def weighted_median_at(disp: np.ndarray, todo: np.ndarray, guide: np.ndarray, ra
                 if acc >= 0.5 * total:
                     out[y, x] = vals[order[i]]
                     break
+
+
+def weighted_median_at(disp: np.ndarray, todo: np.ndarray, guide: np.ndarray, radius: int,
+                       sigma_s: float, sigma_c: float) -> np.ndarray:
+    """Bilateral-weighted median of the finite disparities around each ``todo`` pixel.
+
+    Weight exp(−Δs²/σ_s² − ‖ΔI‖²/σ_c²) with ‖ΔI‖ the colour distance in ``guide`` (H, W, C)
+    (Hosni et al. 2013, §4.1). Other pixels are copied unchanged.
+    """
+    out = disp.copy()
+    for_rows(_weighted_median_at_rows, disp.shape[0], disp, todo, guide, radius, sigma_s, sigma_c, out)
     return out

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from . import prange_only
+from . import chunk_kernel, for_chunks, for_rows
 
 INF = np.float32(np.inf)
 
@@ -287,15 +287,12 @@ def fit_planes(disp, labels, order, starts, method: int, iterations: int, inlier
     return planes, support, inliers
 
 
-@njit(cache=True, parallel=True)
-def replace_by_planes(disp, labels, planes, use_plane, outlier: float, replace_all: bool,
-                      lo: float, hi: float) -> np.ndarray:
-    """Replace invalid pixels and outliers (|d − plane| > ``outlier``) by their segment's plane
-    (all pixels with ``replace_all``), for segments with ``use_plane``; plane values are clipped
-    to the search range [lo, hi]."""
-    h, w = disp.shape
-    out = disp.copy()
-    for y in prange(h):
+@chunk_kernel
+def _replace_by_planes_rows(disp, labels, planes, use_plane, outlier: float, replace_all: bool, lo: float,
+                            hi: float, out, y0: int, y1: int) -> None:
+    """:func:`replace_by_planes` on rows ``y0`` to ``y1`` (exclusive) of ``out``."""
+    w = disp.shape[1]
+    for y in range(y0, y1):
         for x in range(w):
             s = labels[y, x]
             if not use_plane[s]:
@@ -305,6 +302,16 @@ def replace_by_planes(disp, labels, planes, use_plane, outlier: float, replace_a
             d = disp[y, x]
             if replace_all or not np.isfinite(d) or abs(d - pv) > outlier:
                 out[y, x] = np.float32(pv)
+
+
+def replace_by_planes(disp, labels, planes, use_plane, outlier: float, replace_all: bool,
+                      lo: float, hi: float) -> np.ndarray:
+    """Replace invalid pixels and outliers (|d − plane| > ``outlier``) by their segment's plane
+    (all pixels with ``replace_all``), for segments with ``use_plane``; plane values are clipped
+    to the search range [lo, hi]."""
+    out = disp.copy()
+    for_rows(_replace_by_planes_rows, disp.shape[0], disp, labels, planes, use_plane, outlier, replace_all, lo, hi,
+             out)
     return out
 
 
@@ -410,20 +417,26 @@ CHANNEL_BITS = 16
 CHANNEL_MASK = (1 << CHANNEL_BITS) - 1
 
 
-@njit(cache=True, parallel=prange_only())
-def packed_quarter_levels(image: np.ndarray) -> np.ndarray:
-    """(H, W, C) float32 in [0, 255], C ≤ 3 -> (H, W) int64: each channel's quarter grey level
-    round(4·v) in its own 16-bit field (channel ch at bit 16·ch; absent channels are 0). One
-    load gives a pixel's colour, and integer colour differences index the vote tables."""
-    h, w, c = image.shape
-    out = np.empty((h, w), np.int64)
-    for y in prange(h):
+@chunk_kernel
+def _packed_quarter_levels_rows(image, out, y0: int, y1: int) -> None:
+    """:func:`packed_quarter_levels` on rows ``y0`` to ``y1`` (exclusive) of ``out``."""
+    _, w, c = image.shape
+    for y in range(y0, y1):
         for x in range(w):
             v = 0
             for ch in range(c):
                 q = int(4.0 * min(max(image[y, x, ch], np.float32(0.0)), np.float32(255.0)) + 0.5)
                 v |= q << (CHANNEL_BITS * ch)
             out[y, x] = v
+
+
+def packed_quarter_levels(image: np.ndarray) -> np.ndarray:
+    """(H, W, C) float32 in [0, 255], C ≤ 3 -> (H, W) int64: each channel's quarter grey level
+    round(4·v) in its own 16-bit field (channel ch at bit 16·ch; absent channels are 0). One
+    load gives a pixel's colour, and integer colour differences index the vote tables."""
+    h, w, _ = image.shape
+    out = np.empty((h, w), np.int64)
+    for_rows(_packed_quarter_levels_rows, h, image, out)
     return out
 
 
@@ -440,55 +453,61 @@ def _packed_distance(a, b) -> int:
     return _packed_distance_to(a, b & CHANNEL_MASK, (b >> CHANNEL_BITS) & CHANNEL_MASK, b >> (2 * CHANNEL_BITS))
 
 
-@njit(cache=True, parallel=prange_only())
+@chunk_kernel
+def _line_centre_mask_chunk(bins, todo, band: int, min_change: int, vertical: bool, keep, n_chunks: int,
+                            chunk: int) -> None:
+    """:func:`line_centre_mask` on the rows of ``chunk`` (of ``n_chunks``), written into ``keep``."""
+    h, w = bins.shape
+    use_todo = todo.shape[0] > 0
+    none = np.int32(2 ** 30)  # stands for an invalid bin in the running minimum
+    # Row buffers allocated once per chunk of rows, not once per row.
+    high = np.empty(w, np.int32)
+    low = np.empty(w, np.int32)
+    for y in range(chunk * h // n_chunks, (chunk + 1) * h // n_chunks):
+        # Largest and smallest valid bin within band along the line, for the whole row
+        # at once (plain loops over x that vectorise, instead of a search per pixel).
+        high[:] = -1
+        low[:] = none
+        if min_change > 0:
+            for t in range(-band, band + 1):
+                if vertical:
+                    if not 0 <= y + t < h:
+                        continue
+                    src = bins[y + t]
+                    for x in range(w):
+                        v = src[x]
+                        high[x] = max(high[x], v)
+                        low[x] = min(low[x], v if v >= 0 else none)
+                else:
+                    src = bins[y]
+                    # Unsigned indices: no negative-index fix-up, so the loop vectorises.
+                    for x in range(np.uint64(max(0, -t)), np.uint64(min(w, w - t))):
+                        v = src[x + np.uint64(t + w) - np.uint64(w)]
+                        high[x] = max(high[x], v)
+                        low[x] = min(low[x], v if v >= 0 else none)
+        # Branch-free per pixel (bitwise on booleans), so the loop vectorises.
+        row = bins[y]
+        out = keep[y]
+        if min_change > 0:
+            for x in range(w):
+                own = row[x]
+                out[x] = (own >= 0) & ((high[x] - own >= min_change) | (own - low[x] >= min_change))
+        else:
+            for x in range(w):
+                out[x] = row[x] >= 0
+        if use_todo:
+            for x in range(w):
+                out[x] &= todo[y, x]
+
+
 def line_centre_mask(bins: np.ndarray, todo: np.ndarray, band: int, min_change: int, vertical: bool) -> np.ndarray:
     """(H, W) bool: the pixels a line vote can move: valid bin, ``todo`` (an empty array:
     every pixel) and, with ``min_change`` > 0, a valid bin at least ``min_change`` from
     their own within ``band`` px along the row (or, ``vertical``, the column)."""
     h, w = bins.shape
-    use_todo = todo.shape[0] > 0
-    none = np.int32(2 ** 30)  # stands for an invalid bin in the running minimum
-    keep = np.empty((h, w), np.bool_)  # every row is written below
+    keep = np.empty((h, w), np.bool_)  # every row is written by the chunks
     n_chunks = min(h, 8)
-    for chunk in prange(n_chunks):
-        # Row buffers allocated once per chunk of rows, not once per row.
-        high = np.empty(w, np.int32)
-        low = np.empty(w, np.int32)
-        for y in range(chunk * h // n_chunks, (chunk + 1) * h // n_chunks):
-            # Largest and smallest valid bin within band along the line, for the whole row
-            # at once (plain loops over x that vectorise, instead of a search per pixel).
-            high[:] = -1
-            low[:] = none
-            if min_change > 0:
-                for t in range(-band, band + 1):
-                    if vertical:
-                        if not 0 <= y + t < h:
-                            continue
-                        src = bins[y + t]
-                        for x in range(w):
-                            v = src[x]
-                            high[x] = max(high[x], v)
-                            low[x] = min(low[x], v if v >= 0 else none)
-                    else:
-                        src = bins[y]
-                        # Unsigned indices: no negative-index fix-up, so the loop vectorises.
-                        for x in range(np.uint64(max(0, -t)), np.uint64(min(w, w - t))):
-                            v = src[x + np.uint64(t + w) - np.uint64(w)]
-                            high[x] = max(high[x], v)
-                            low[x] = min(low[x], v if v >= 0 else none)
-            # Branch-free per pixel (bitwise on booleans), so the loop vectorises.
-            row = bins[y]
-            out = keep[y]
-            if min_change > 0:
-                for x in range(w):
-                    own = row[x]
-                    out[x] = (own >= 0) & ((high[x] - own >= min_change) | (own - low[x] >= min_change))
-            else:
-                for x in range(w):
-                    out[x] = row[x] >= 0
-            if use_todo:
-                for x in range(w):
-                    out[x] &= todo[y, x]
+    for_chunks(_line_centre_mask_chunk, n_chunks, bins, todo, band, min_change, vertical, keep, n_chunks)
     return keep
 
 
@@ -528,7 +547,50 @@ def _line_votes(disp, bins, left_packed, right_packed, y: int, x: int, sy: int, 
     return lo, hi
 
 
-@njit(cache=True, parallel=True)
+@chunk_kernel
+def _local_consistency_line_chunk(disp, bins, centres, left_packed, right_packed, min_disp: int, ndisp: int,
+                                  radius: int, spatial, colour_w, match_w, outside_w: float, min_change: int,
+                                  vertical: bool, use_right: bool, out, share, n_chunks: int, chunk: int) -> None:
+    """:func:`local_consistency_line` on the centres of ``chunk`` (of ``n_chunks``), written into ``out``/``share``."""
+    h, w = bins.shape
+    n_centres = centres.shape[0]
+    # Mass and weighted disparity sum of bin k side by side (hist[2k], hist[2k + 1]): one
+    # cache line per bin, and a little faster than two arrays.
+    hist = np.zeros(2 * ndisp, np.float32)
+    for i in range(chunk * n_centres // n_chunks, (chunk + 1) * n_centres // n_chunks):
+        y = centres[i] // w
+        x = centres[i] - y * w
+        own = bins[y, x]
+        pos = y if vertical else x
+        t0 = max(-radius, -pos)
+        t1 = min(radius, (h if vertical else w) - 1 - pos)
+        # Literal directions and right-term switch: each branch compiles one straight loop.
+        if vertical and use_right:
+            lo, hi = _line_votes(disp, bins, left_packed, right_packed, y, x, 1, 0, t0, t1, radius, min_disp,
+                                 spatial, colour_w, match_w, outside_w, hist, True)
+        elif vertical:
+            lo, hi = _line_votes(disp, bins, left_packed, right_packed, y, x, 1, 0, t0, t1, radius, min_disp,
+                                 spatial, colour_w, match_w, outside_w, hist, False)
+        elif use_right:
+            lo, hi = _line_votes(disp, bins, left_packed, right_packed, y, x, 0, 1, t0, t1, radius, min_disp,
+                                 spatial, colour_w, match_w, outside_w, hist, True)
+        else:
+            lo, hi = _line_votes(disp, bins, left_packed, right_packed, y, x, 0, 1, t0, t1, radius, min_disp,
+                                 spatial, colour_w, match_w, outside_w, hist, False)
+        best = lo
+        total = np.float32(0.0)
+        for k in range(lo, hi + 1):
+            total += hist[2 * k]
+            if hist[2 * k] > hist[2 * best]:
+                best = k
+        if total > 0:
+            share[y, x] = hist[2 * best] / total
+            if abs(best - own) >= min_change:
+                out[y, x] = hist[2 * best + 1] / hist[2 * best]
+        for k in range(2 * lo, 2 * hi + 2):
+            hist[k] = 0.0
+
+
 def local_consistency_line(disp, bins, centres, left_packed, right_packed, min_disp: int, ndisp: int, radius: int,
                            spatial, colour_w, match_w, outside_w: float, min_change: int, vertical: bool,
                            use_right: bool = True):
@@ -549,44 +611,10 @@ def local_consistency_line(disp, bins, centres, left_packed, right_packed, min_d
     h, w = bins.shape
     out = disp.copy()
     share = np.ones((h, w), np.float32)
-    n_centres = centres.shape[0]
-    n_chunks = min(n_centres, 64)  # centres cluster along edges: many small chunks balance the threads
-    for chunk in prange(n_chunks):
-        # Mass and weighted disparity sum of bin k side by side (hist[2k], hist[2k + 1]): one
-        # cache line per bin, and a little faster than two arrays.
-        hist = np.zeros(2 * ndisp, np.float32)
-        for i in range(chunk * n_centres // n_chunks, (chunk + 1) * n_centres // n_chunks):
-            y = centres[i] // w
-            x = centres[i] - y * w
-            own = bins[y, x]
-            pos = y if vertical else x
-            t0 = max(-radius, -pos)
-            t1 = min(radius, (h if vertical else w) - 1 - pos)
-            # Literal directions and right-term switch: each branch compiles one straight loop.
-            if vertical and use_right:
-                lo, hi = _line_votes(disp, bins, left_packed, right_packed, y, x, 1, 0, t0, t1, radius, min_disp,
-                                     spatial, colour_w, match_w, outside_w, hist, True)
-            elif vertical:
-                lo, hi = _line_votes(disp, bins, left_packed, right_packed, y, x, 1, 0, t0, t1, radius, min_disp,
-                                     spatial, colour_w, match_w, outside_w, hist, False)
-            elif use_right:
-                lo, hi = _line_votes(disp, bins, left_packed, right_packed, y, x, 0, 1, t0, t1, radius, min_disp,
-                                     spatial, colour_w, match_w, outside_w, hist, True)
-            else:
-                lo, hi = _line_votes(disp, bins, left_packed, right_packed, y, x, 0, 1, t0, t1, radius, min_disp,
-                                     spatial, colour_w, match_w, outside_w, hist, False)
-            best = lo
-            total = np.float32(0.0)
-            for k in range(lo, hi + 1):
-                total += hist[2 * k]
-                if hist[2 * k] > hist[2 * best]:
-                    best = k
-            if total > 0:
-                share[y, x] = hist[2 * best] / total
-                if abs(best - own) >= min_change:
-                    out[y, x] = hist[2 * best + 1] / hist[2 * best]
-            for k in range(2 * lo, 2 * hi + 2):
-                hist[k] = 0.0
+    n_chunks = min(centres.shape[0], 64)  # centres cluster along edges: many small chunks balance the threads
+    for_chunks(_local_consistency_line_chunk, n_chunks, disp, bins, centres, left_packed, right_packed, min_disp,
+               ndisp, radius, spatial, colour_w, match_w, outside_w, min_change, vertical, use_right, out, share,
+               n_chunks)
     return out, share
 
 
@@ -680,7 +708,101 @@ def _add_candidate(cand_m, cand_s, seen, touched, cn: int, k: int, m: float, s: 
     return cn
 
 
-@njit(cache=True, parallel=prange_only())
+@chunk_kernel
+def _vote_chunk(disp, bins, packed, centre, passed, min_change: int, max_bins: int, n_bins: int,
+                vertical: bool, out, n_chunks: int, chunk: int) -> None:
+    """:func:`geodesic_vote_line` on the lines of ``chunk`` (of ``n_chunks``), written into ``out``."""
+    h, w = bins.shape
+    n_lines = w if vertical else h
+    n_pos = h if vertical else w
+    # Per-thread buffers, reused for every line of the chunk.
+    centres = np.empty(n_pos, np.int64)
+    decay = np.empty(n_pos, np.float64)  # decay[p]: weight passed between positions p - 1 and p
+    fk = np.empty((n_pos, max_bins + 1), np.int32)  # forward vote saved at each centre (true masses)
+    fm = np.empty((n_pos, max_bins + 1), np.float64)
+    fs = np.empty((n_pos, max_bins + 1), np.float64)
+    fn = np.zeros(n_pos, np.int64)
+    kk = np.empty(max_bins, np.int32)
+    mm = np.empty(max_bins, np.float64)  # masses and disparity sums, stored divided by ``scale``
+    ss = np.empty(max_bins, np.float64)
+    # A decision's candidates: mass and disparity sum by bin (zero between decisions) and
+    # the bins touched, in order. (Indexing by bin instead of searching a short list made
+    # the decisions, a third of the kernel's time on Tsukuba, three times faster.)
+    cand_m = np.zeros(n_bins, np.float64)
+    cand_s = np.zeros(n_bins, np.float64)
+    seen = np.zeros(n_bins, np.bool_)
+    touched = np.empty(2 * max_bins + 3, np.int32)
+    for line in range(chunk * n_lines // n_chunks, (chunk + 1) * n_lines // n_chunks):
+        n_centres = 0
+        for p in range(n_pos):
+            if centre[p, line] if vertical else centre[line, p]:
+                centres[n_centres] = p
+                n_centres += 1
+        if n_centres == 0:
+            continue
+        # Forward: the running vote arriving at each centre (before its own vote). The
+        # current run of one bin is kept in true values (decayed by one multiply-add per
+        # pixel); the other bins in stored values, true = stored × scale, so decaying them
+        # is one multiplication of ``scale``.
+        n, last, scale, run_k, run_m, run_s = _empty_vote()
+        ci = 0
+        for p in range(n_pos):
+            if p > 0:
+                if vertical:
+                    step = _packed_distance(packed[p, line], packed[p - 1, line])
+                else:
+                    step = _packed_distance(packed[line, p], packed[line, p - 1])
+                decay[p] = passed[step]  # kept for the backward pass
+                scale, run_m, run_s = _decay_vote(mm, ss, n, scale, run_m, run_s, decay[p])
+            if ci < n_centres and centres[ci] == p:
+                n, last, run_k, run_m, run_s = _add_vote(kk, mm, ss, n, last, scale, run_k, run_m, run_s, -1, 0.0)
+                for j in range(n):
+                    fk[ci, j] = kk[j]
+                    fm[ci, j] = mm[j] * scale
+                    fs[ci, j] = ss[j] * scale
+                fn[ci] = n
+                ci += 1
+            k = bins[p, line] if vertical else bins[line, p]
+            if k >= 0:
+                d = disp[p, line] if vertical else disp[line, p]
+                n, last, run_k, run_m, run_s = _add_vote(kk, mm, ss, n, last, scale, run_k, run_m, run_s, k, d)
+        # Backward, deciding each centre from its own vote and both running votes.
+        n, last, scale, run_k, run_m, run_s = _empty_vote()
+        ci = n_centres - 1
+        for p in range(n_pos - 1, -1, -1):
+            if p < n_pos - 1:
+                scale, run_m, run_s = _decay_vote(mm, ss, n, scale, run_m, run_s, decay[p + 1])
+            k = bins[p, line] if vertical else bins[line, p]
+            d = disp[p, line] if vertical else disp[line, p]
+            if ci >= 0 and centres[ci] == p:
+                n, last, run_k, run_m, run_s = _add_vote(kk, mm, ss, n, last, scale, run_k, run_m, run_s, -1, 0.0)
+                # Own vote, then the forward and the backward running votes.
+                cn = _add_candidate(cand_m, cand_s, seen, touched, 0, k, 1.0, d)
+                for j in range(fn[ci]):
+                    cn = _add_candidate(cand_m, cand_s, seen, touched, cn, fk[ci, j], fm[ci, j], fs[ci, j])
+                for j in range(n):
+                    cn = _add_candidate(cand_m, cand_s, seen, touched, cn, kk[j], mm[j] * scale, ss[j] * scale)
+                best = touched[0]
+                for i in range(1, cn):
+                    b = touched[i]
+                    if cand_m[b] > cand_m[best] or (cand_m[b] == cand_m[best] and b < best):
+                        best = b
+                if abs(best - k) >= min_change:
+                    v = np.float32(cand_s[best] / cand_m[best])
+                    if vertical:
+                        out[p, line] = v
+                    else:
+                        out[line, p] = v
+                for i in range(cn):
+                    b = touched[i]
+                    cand_m[b] = 0.0
+                    cand_s[b] = 0.0
+                    seen[b] = False
+                ci -= 1
+            if k >= 0:
+                n, last, run_k, run_m, run_s = _add_vote(kk, mm, ss, n, last, scale, run_k, run_m, run_s, k, d)
+
+
 def geodesic_vote_line(disp, bins, packed, centre, passed, min_change: int, max_bins: int, n_bins: int,
                        vertical: bool):
     """One pass of the geodesic vote along the rows (or, ``vertical``, the columns).
@@ -698,96 +820,9 @@ def geodesic_vote_line(disp, bins, packed, centre, passed, min_change: int, max_
     the others keep their value. ``disp`` (H, W) float32 +inf invalid; ``bins`` from
     :func:`~stereocli.match.kernels.maps.disparity_bins`, all below ``n_bins``. Returns the new map.
     """
-    h, w = bins.shape
     out = disp.copy()
-    n_lines = w if vertical else h
-    n_pos = h if vertical else w
+    n_lines = bins.shape[1] if vertical else bins.shape[0]
     n_chunks = min(n_lines, 8)  # few chunks: each allocates its line buffers
-    for chunk in prange(n_chunks):
-        # Per-thread buffers, reused for every line of the chunk.
-        centres = np.empty(n_pos, np.int64)
-        decay = np.empty(n_pos, np.float64)  # decay[p]: weight passed between positions p - 1 and p
-        fk = np.empty((n_pos, max_bins + 1), np.int32)  # forward vote saved at each centre (true masses)
-        fm = np.empty((n_pos, max_bins + 1), np.float64)
-        fs = np.empty((n_pos, max_bins + 1), np.float64)
-        fn = np.zeros(n_pos, np.int64)
-        kk = np.empty(max_bins, np.int32)
-        mm = np.empty(max_bins, np.float64)  # masses and disparity sums, stored divided by ``scale``
-        ss = np.empty(max_bins, np.float64)
-        # A decision's candidates: mass and disparity sum by bin (zero between decisions) and
-        # the bins touched, in order. (Indexing by bin instead of searching a short list made
-        # the decisions, a third of the kernel's time on Tsukuba, three times faster.)
-        cand_m = np.zeros(n_bins, np.float64)
-        cand_s = np.zeros(n_bins, np.float64)
-        seen = np.zeros(n_bins, np.bool_)
-        touched = np.empty(2 * max_bins + 3, np.int32)
-        for line in range(chunk * n_lines // n_chunks, (chunk + 1) * n_lines // n_chunks):
-            n_centres = 0
-            for p in range(n_pos):
-                if centre[p, line] if vertical else centre[line, p]:
-                    centres[n_centres] = p
-                    n_centres += 1
-            if n_centres == 0:
-                continue
-            # Forward: the running vote arriving at each centre (before its own vote). The
-            # current run of one bin is kept in true values (decayed by one multiply-add per
-            # pixel); the other bins in stored values, true = stored × scale, so decaying them
-            # is one multiplication of ``scale``.
-            n, last, scale, run_k, run_m, run_s = _empty_vote()
-            ci = 0
-            for p in range(n_pos):
-                if p > 0:
-                    if vertical:
-                        step = _packed_distance(packed[p, line], packed[p - 1, line])
-                    else:
-                        step = _packed_distance(packed[line, p], packed[line, p - 1])
-                    decay[p] = passed[step]  # kept for the backward pass
-                    scale, run_m, run_s = _decay_vote(mm, ss, n, scale, run_m, run_s, decay[p])
-                if ci < n_centres and centres[ci] == p:
-                    n, last, run_k, run_m, run_s = _add_vote(kk, mm, ss, n, last, scale, run_k, run_m, run_s, -1, 0.0)
-                    for j in range(n):
-                        fk[ci, j] = kk[j]
-                        fm[ci, j] = mm[j] * scale
-                        fs[ci, j] = ss[j] * scale
-                    fn[ci] = n
-                    ci += 1
-                k = bins[p, line] if vertical else bins[line, p]
-                if k >= 0:
-                    d = disp[p, line] if vertical else disp[line, p]
-                    n, last, run_k, run_m, run_s = _add_vote(kk, mm, ss, n, last, scale, run_k, run_m, run_s, k, d)
-            # Backward, deciding each centre from its own vote and both running votes.
-            n, last, scale, run_k, run_m, run_s = _empty_vote()
-            ci = n_centres - 1
-            for p in range(n_pos - 1, -1, -1):
-                if p < n_pos - 1:
-                    scale, run_m, run_s = _decay_vote(mm, ss, n, scale, run_m, run_s, decay[p + 1])
-                k = bins[p, line] if vertical else bins[line, p]
-                d = disp[p, line] if vertical else disp[line, p]
-                if ci >= 0 and centres[ci] == p:
-                    n, last, run_k, run_m, run_s = _add_vote(kk, mm, ss, n, last, scale, run_k, run_m, run_s, -1, 0.0)
-                    # Own vote, then the forward and the backward running votes.
-                    cn = _add_candidate(cand_m, cand_s, seen, touched, 0, k, 1.0, d)
-                    for j in range(fn[ci]):
-                        cn = _add_candidate(cand_m, cand_s, seen, touched, cn, fk[ci, j], fm[ci, j], fs[ci, j])
-                    for j in range(n):
-                        cn = _add_candidate(cand_m, cand_s, seen, touched, cn, kk[j], mm[j] * scale, ss[j] * scale)
-                    best = touched[0]
-                    for i in range(1, cn):
-                        b = touched[i]
-                        if cand_m[b] > cand_m[best] or (cand_m[b] == cand_m[best] and b < best):
-                            best = b
-                    if abs(best - k) >= min_change:
-                        v = np.float32(cand_s[best] / cand_m[best])
-                        if vertical:
-                            out[p, line] = v
-                        else:
-                            out[line, p] = v
-                    for i in range(cn):
-                        b = touched[i]
-                        cand_m[b] = 0.0
-                        cand_s[b] = 0.0
-                        seen[b] = False
-                    ci -= 1
-                if k >= 0:
-                    n, last, run_k, run_m, run_s = _add_vote(kk, mm, ss, n, last, scale, run_k, run_m, run_s, k, d)
+    for_chunks(_vote_chunk, n_chunks, disp, bins, packed, centre, passed, min_change, max_bins, n_bins, vertical,
+               out, n_chunks)
     return out

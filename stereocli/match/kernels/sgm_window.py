@@ -38,10 +38,10 @@ Every element is computed by one thread in a fixed order: bit-identical for any 
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
-from . import prange_only
-from .sgm import DOWN_DIRECTIONS, GAP, INF, INT16_MAX, STRIPES, _min_packed, _penalty2, stripe_pass
+from . import chunk_kernel, for_chunks, for_rows
+from .sgm import DOWN_DIRECTIONS, GAP, INF, INT16_MAX, STRIPES, _min_packed, _penalty2, borrowed, stripe_pass
 
 #: Sum value of a hypothesis outside a pixel's window in an expanded volume (:func:`expand_sums`).
 S_MAX = 65535
@@ -313,16 +313,12 @@ def _pass_rows(cq, nd: int, mul, pens, total, offset, win_lo, win_hi, run_lo, ru
             _right_row(total, off_row, lo_row, hi_row, rlo_row, y, min_disp, disp_r, costs_r, rbest, want_right_costs)
 
 
-@njit(cache=True, parallel=prange_only())
-def penalty_maps(guide, dirs, p1: int, p2: int, gamma: float):
-    """(K + 1, H, W) int16: the adaptive P2 between each pixel and its predecessor along the
-    horizontal path (index 0, predecessor (y, x − 1)) and each direction (dy, dx) of ``dirs``
-    (predecessor (y − dy, x − dx)); P2 where the predecessor is outside the image. The
-    penalty is symmetric, so the backward pass reads it at its predecessor."""
-    h, w = guide.shape
+@chunk_kernel
+def _penalty_maps_rows(guide, dirs, p1: int, p2: int, gamma: float, pens, y0: int, y1: int) -> None:
+    """:func:`penalty_maps` on rows ``y0 ≤ y < y1``, written into ``pens``."""
+    w = guide.shape[1]
     nk = dirs.shape[0]
-    pens = np.empty((nk + 1, h, w), np.int16)
-    for y in prange(h):
+    for y in range(y0, y1):
         pens[0, y, 0] = p2
         for x in range(1, w):
             pens[0, y, x] = _penalty2(guide[y, x], guide[y, x - 1], p1, p2, gamma)
@@ -334,10 +330,38 @@ def penalty_maps(guide, dirs, p1: int, p2: int, gamma: float):
                     pens[k + 1, y, x] = _penalty2(guide[y, x], guide[y - dy, x - dx], p1, p2, gamma)
                 else:
                     pens[k + 1, y, x] = p2
+
+
+def penalty_maps(guide, dirs, p1: int, p2: int, gamma: float):
+    """(K + 1, H, W) int16: the adaptive P2 between each pixel and its predecessor along the
+    horizontal path (index 0, predecessor (y, x − 1)) and each direction (dy, dx) of ``dirs``
+    (predecessor (y − dy, x − dx)); P2 where the predecessor is outside the image. The
+    penalty is symmetric, so the backward pass reads it at its predecessor."""
+    h, w = guide.shape
+    pens = np.empty((dirs.shape[0] + 1, h, w), np.int16)
+    for_rows(_penalty_maps_rows, h, guide, dirs, p1, p2, gamma, pens)
     return pens
 
 
-@njit(cache=True, parallel=prange_only())
+@chunk_kernel
+def _sgm_window_two_pass_chunk(cq, nd: int, mul: int, pens, total, offset, win_lo, win_hi, run_lo, run_hi, dirs,
+                               p1: int, min_disp: int, lbuf, lslot, mins, hbuf, scratch, rbest, disp, disp_r, costs,
+                               costs_r, second, t: int) -> None:
+    """Both passes of row stripe ``t`` (:func:`sgm_window_two_pass`), on that stripe's buffers."""
+    h = win_lo.shape[0]
+    # Without reference counts, as in .sgm._sgm_two_pass_chunk (:func:`.sgm.borrowed`).
+    cq, pens, total, offset, dirs = borrowed(cq), borrowed(pens), borrowed(total), borrowed(offset), borrowed(dirs)
+    win_lo, win_hi, run_lo, run_hi = borrowed(win_lo), borrowed(win_hi), borrowed(run_lo), borrowed(run_hi)
+    lbuf, lslot, mins, hbuf = borrowed(lbuf), borrowed(lslot), borrowed(mins), borrowed(hbuf)
+    scratch, rbest, disp, disp_r = borrowed(scratch), borrowed(rbest), borrowed(disp), borrowed(disp_r)
+    costs, costs_r, second = borrowed(costs), borrowed(costs_r), borrowed(second)
+    for j in range(2):  # one call site with run-time arguments (see .sgm._sgm_two_pass_chunk)
+        forward, i0, i1, i_keep = stripe_pass(t, j, h)
+        _pass_rows(cq, nd, mul, pens, total, offset, win_lo, win_hi, run_lo, run_hi, dirs, forward, i0, i1,
+                   i_keep, p1, lbuf[t], lslot[t], mins[t], hbuf[t], scratch[t], disp, disp_r, costs,
+                   costs_r, second, rbest[t], min_disp)
+
+
 def sgm_window_two_pass(cq, nd: int, mul: int, pens, total, offset, win_lo, win_hi, run_lo, run_hi, dirs, p1: int,
                         min_disp: int, want_right: bool, want_second: bool, want_right_costs: bool):
     """Both passes per row stripe over the windows (the row stripes of :mod:`.sgm`); returns
@@ -351,10 +375,9 @@ def sgm_window_two_pass(cq, nd: int, mul: int, pens, total, offset, win_lo, win_
     lslot = np.zeros((ns, nk, 3, w + GAP, 2), np.int32)  # every buffer starts as all sentinels
     hbuf = np.empty((ns, 2, nd + 4 + GAP), np.int16)
     mins = np.zeros((ns, nk, 3, w + GAP), np.int16)
-    longest = 0  # the most sums one row holds (a warm row's go to scratch)
-    for y in range(h):
-        end = offset[y + 1, 0] if y + 1 < h else total.shape[0]
-        longest = max(longest, end - offset[y, 0])
+    # The most sums one row holds (a warm row's go to scratch).
+    ends = np.append(offset[1:, 0], total.shape[0])
+    longest = max(0, int((ends - offset[:, 0]).max())) if h > 0 and w > 0 else 0
     scratch = np.empty((ns, longest + GAP), np.uint16)
     rbest = np.zeros((ns, w + GAP if want_right else 0), np.uint32)
     hr = h if want_right else 0
@@ -364,63 +387,55 @@ def sgm_window_two_pass(cq, nd: int, mul: int, pens, total, offset, win_lo, win_
     costs = np.empty((h, w, 3), np.float32)  # written wherever a winner is (only read there)
     costs_r = np.empty((hr if want_right_costs else 0, wr if want_right_costs else 0, 3), np.float32)
     second = np.zeros((h if want_second else 0, w if want_second else 0), np.float32)
-    for t in prange(ns):
-        for j in range(2):  # one call site with run-time arguments (see .sgm.sgm_two_pass)
-            forward, i0, i1, i_keep = stripe_pass(t, j, h)
-            _pass_rows(cq, nd, mul, pens, total, offset, win_lo, win_hi, run_lo, run_hi, dirs, forward, i0, i1,
-                       i_keep, p1, lbuf[t], lslot[t], mins[t], hbuf[t], scratch[t], disp, disp_r, costs,
-                       costs_r, second, rbest[t], min_disp)
+    for_chunks(_sgm_window_two_pass_chunk, ns, cq, nd, mul, pens, total, offset, win_lo, win_hi, run_lo, run_hi,
+               dirs, p1, min_disp, lbuf, lslot, mins, hbuf, scratch, rbest, disp, disp_r, costs, costs_r, second)
     return disp, disp_r, costs, costs_r, second
 
 
-@njit(cache=True, parallel=True)
+@chunk_kernel
+def _expand_sums_rows(total, offset, run_lo, win_lo, win_hi, out, y0: int, y1: int) -> None:
+    """:func:`expand_sums` on rows ``y0 ≤ y < y1``, written into ``out``."""
+    w = win_lo.shape[1]
+    for y in range(y0, y1):
+        for x in range(w):
+            o = offset[y, x] - run_lo[y, x]
+            for k in range(win_lo[y, x], win_hi[y, x]):
+                out[y, x, k] = total[o + k]
+
+
 def expand_sums(total, offset, run_lo, win_lo, win_hi, nd: int):
     """The dense (H, W, D) uint16 volume of ragged sums (stored from ``run_lo`` at ``offset``),
     ``S_MAX`` outside the windows ``[win_lo, win_hi)`` (for stages that need the whole volume)."""
     h, w = win_lo.shape
     out = np.full((h, w, nd), S_MAX, np.uint16)
-    for y in prange(h):
-        for x in range(w):
-            o = offset[y, x] - run_lo[y, x]
-            for k in range(win_lo[y, x], win_hi[y, x]):
-                out[y, x, k] = total[o + k]
+    for_rows(_expand_sums_rows, h, total, offset, run_lo, win_lo, win_hi, out)
     return out
 
 
-@njit(cache=True, parallel=True)
-def gather_runs(cq, run_lo, run_hi, offset, n: int):
-    """The entries of a dense (H, W, D) cost volume on each pixel's run, ragged (for costs
-    that offer no windowed kernel)."""
-    h, w = run_lo.shape
-    out = np.empty(n, cq.dtype)
-    for y in prange(h):
+@chunk_kernel
+def _gather_runs_rows(cq, run_lo, run_hi, offset, out, y0: int, y1: int) -> None:
+    """:func:`gather_runs` on rows ``y0 ≤ y < y1``, written into ``out``."""
+    w = run_lo.shape[1]
+    for y in range(y0, y1):
         for x in range(w):
             o = offset[y, x] - run_lo[y, x]
             for k in range(run_lo[y, x], run_hi[y, x]):
                 out[o + k] = cq[y, x, k]
+
+
+def gather_runs(cq, run_lo, run_hi, offset, n: int):
+    """The entries of a dense (H, W, D) cost volume on each pixel's run, ragged (for costs
+    that offer no windowed kernel)."""
+    out = np.empty(n, cq.dtype)
+    for_rows(_gather_runs_rows, run_lo.shape[0], cq, run_lo, run_hi, offset, out)
     return out
 
 
-@njit(cache=True, parallel=prange_only())
-def _runs_and_offsets(lo, hi, nd: int, step: int):
-    # Runs on the grid of ``step`` around each window [lo, hi) and their row-major offsets in
-    # the flat arrays (each pixel's run follows the previous pixel's) in one compiled pass;
-    # returns ``(run_lo, run_hi, offset, n, bad)``, ``bad`` counting windows outside [0, nd)
-    # or empty.
-    h, w = lo.shape
-    run_lo = np.empty((h, w), np.int32)
-    run_hi = np.empty((h, w), np.int32)
-    offset = np.empty((h, w), np.int64)
-    row_start = np.zeros(h + 1, np.int64)
-    row_bad = np.zeros(h, np.int64)
-    # Grid bounds of every value 0..nd, looked up per pixel (two divisions per pixel by a
-    # run-time step took most of this kernel's time).
-    down = np.empty(nd + 1, np.int32)
-    up = np.empty(nd + 1, np.int32)
-    for v in range(nd + 1):
-        down[v] = v // step * step
-        up[v] = min((v + step - 1) // step * step, nd)
-    for y in prange(h):
+@chunk_kernel
+def _runs_rows(lo, hi, nd: int, down, up, run_lo, run_hi, offset, row_start, row_bad, y0: int, y1: int) -> None:
+    """:func:`_runs_and_offsets`' runs of rows ``y0 ≤ y < y1``, their offsets within the row."""
+    w = lo.shape[1]
+    for y in range(y0, y1):
         used = 0
         bad = 0
         for x in range(w):
@@ -438,12 +453,36 @@ def _runs_and_offsets(lo, hi, nd: int, step: int):
             used += rb - ra
         row_start[y + 1] = used
         row_bad[y] = bad
-    for y in range(h):  # prefix sum over the rows
-        row_start[y + 1] += row_start[y]
-    for y in prange(h):
+
+
+@chunk_kernel
+def _offsets_rows(offset, row_start, y0: int, y1: int) -> None:
+    """Rows ``y0 ≤ y < y1`` of ``offset`` moved from within the row to within the flat array."""
+    w = offset.shape[1]
+    for y in range(y0, y1):
         for x in range(w):
             offset[y, x] += row_start[y]
-    return run_lo, run_hi, offset, row_start[h], row_bad.sum()
+
+
+def _runs_and_offsets(lo, hi, nd: int, step: int):
+    # Runs on the grid of ``step`` around each window [lo, hi) and their row-major offsets in
+    # the flat arrays (each pixel's run follows the previous pixel's); returns ``(run_lo,
+    # run_hi, offset, n, bad)``, ``bad`` counting windows outside [0, nd) or empty.
+    h, w = lo.shape
+    run_lo = np.empty((h, w), np.int32)
+    run_hi = np.empty((h, w), np.int32)
+    offset = np.empty((h, w), np.int64)
+    row_start = np.zeros(h + 1, np.int64)
+    row_bad = np.zeros(h, np.int64)
+    # Grid bounds of every value 0..nd, looked up per pixel (two divisions per pixel by a
+    # run-time step took most of the time of the runs).
+    v = np.arange(nd + 1, dtype=np.int64)
+    down = (v // step * step).astype(np.int32)
+    up = np.minimum((v + step - 1) // step * step, nd).astype(np.int32)
+    for_rows(_runs_rows, h, lo, hi, nd, down, up, run_lo, run_hi, offset, row_start, row_bad)
+    np.cumsum(row_start, out=row_start)  # the row starts
+    for_rows(_offsets_rows, h, offset, row_start)
+    return run_lo, run_hi, offset, int(row_start[h]), int(row_bad.sum())
 
 
 def window_runs(win_lo: np.ndarray, win_hi: np.ndarray, nd: int, align: int = 16):
@@ -519,32 +558,38 @@ def _column_min_max(rmin, rmax, lo, hi, y: int, radius: int) -> None:
             hi[x] = max(hi[x], rmax[yy, x])
 
 
-@njit(cache=True, parallel=prange_only())
+@chunk_kernel
+def _square_rows(coarse, radius: int, rmin, rmax, y0: int, y1: int) -> None:
+    """The row pass of :func:`square_min_max` on rows ``y0 ≤ y < y1``."""
+    for y in range(y0, y1):
+        _row_min_max(coarse[y], rmin[y], rmax[y], radius)
+
+
+@chunk_kernel
+def _square_columns_rows(rmin, rmax, radius: int, lo, hi, y0: int, y1: int) -> None:
+    """The column pass of :func:`square_min_max` on rows ``y0 ≤ y < y1``."""
+    for y in range(y0, y1):
+        _column_min_max(rmin, rmax, lo[y], hi[y], y, radius)
+
+
 def square_min_max(coarse: np.ndarray, radius: int):
     """Min and max of the finite values of ``coarse`` (2-D float32) over the (2r + 1)² square
-    around each pixel (separable: rows, then columns); +inf / −inf where none is finite.
-    (The loops are functions of their own: numba's parallel passes then see two small loops,
-    and the kernel compiles several times faster.)"""
+    around each pixel (separable: rows, then columns); +inf / −inf where none is finite."""
     h, w = coarse.shape
     rmin = np.empty((h, w), np.float32)
     rmax = np.empty((h, w), np.float32)
-    for y in prange(h):
-        _row_min_max(coarse[y], rmin[y], rmax[y], radius)
+    for_rows(_square_rows, h, coarse, radius, rmin, rmax)
     lo = np.empty((h, w), np.float32)
     hi = np.empty((h, w), np.float32)
-    for y in prange(h):
-        _column_min_max(rmin, rmax, lo[y], hi[y], np.int64(y), radius)  # (one signature: y may be unsigned)
+    for_rows(_square_columns_rows, h, rmin, rmax, radius, lo, hi)
     return lo, hi
 
 
-@njit(cache=True, parallel=prange_only())
-def upsample_windows(nmin, nmax, h: int, w: int, min_disp: int, ndisp: int, margin: int):
-    """(H, W) int32 ``lo``/``hi`` volume indices from the coarse range [nmin, nmax] of each
-    pixel's coarse parent (y // 2, x // 2): doubled, ± ``margin``; the full range where the
-    range is empty. Clipped to [0, D) and never empty."""
-    lo_map = np.empty((h, w), np.int32)
-    hi_map = np.empty((h, w), np.int32)
-    for y in prange(h):
+@chunk_kernel
+def _upsample_windows_rows(nmin, nmax, w: int, min_disp: int, ndisp: int, margin: int, lo_map, hi_map, y0: int,
+                           y1: int) -> None:
+    """:func:`upsample_windows` on rows ``y0 ≤ y < y1``, written into ``lo_map``/``hi_map``."""
+    for y in range(y0, y1):
         for x in range(w):
             a = nmin[y // 2, x // 2]
             b = nmax[y // 2, x // 2]
@@ -557,4 +602,13 @@ def upsample_windows(nmin, nmax, h: int, w: int, min_disp: int, ndisp: int, marg
             lo = min(max(lo, 0), ndisp - 1)
             lo_map[y, x] = lo
             hi_map[y, x] = min(max(hi, lo + 1), ndisp)
+
+
+def upsample_windows(nmin, nmax, h: int, w: int, min_disp: int, ndisp: int, margin: int):
+    """(H, W) int32 ``lo``/``hi`` volume indices from the coarse range [nmin, nmax] of each
+    pixel's coarse parent (y // 2, x // 2): doubled, ± ``margin``; the full range where the
+    range is empty. Clipped to [0, D) and never empty."""
+    lo_map = np.empty((h, w), np.int32)
+    hi_map = np.empty((h, w), np.int32)
+    for_rows(_upsample_windows_rows, h, nmin, nmax, w, min_disp, ndisp, margin, lo_map, hi_map)
     return lo_map, hi_map

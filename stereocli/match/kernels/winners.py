@@ -8,25 +8,18 @@ Cost volume layout: ``cost[y, x, k]`` is the cost of left pixel (x, y) against r
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
-from . import prange_only
+from . import chunk_kernel, for_rows
 
 INF = np.float32(np.inf)
 
 
-@njit(cache=True, parallel=True)
-def wta_left(cost: np.ndarray, min_disp: int, cost_max: float):
-    """Winner-take-all along D for each left pixel.
-
-    Returns ``(disparity, best_cost)``: float32 (H, W) integer-valued disparities (``+inf`` where
-    every hypothesis holds ``cost_max``, i.e. nothing could be matched) and the winning cost.
-    Ties go to the smallest disparity (deterministic).
-    """
-    h, w, nd = cost.shape
-    disp = np.empty((h, w), np.float32)
-    best = np.empty((h, w), np.float32)
-    for y in prange(h):
+@chunk_kernel
+def _wta_left_rows(cost, min_disp: int, cost_max: float, disp, best, y0: int, y1: int) -> None:
+    """:func:`wta_left` of rows ``[y0, y1)``, written into ``disp`` and ``best``."""
+    w, nd = cost.shape[1], cost.shape[2]
+    for y in range(y0, y1):
         for x in range(w):
             bk = 0
             bc = cost[y, x, 0]
@@ -37,21 +30,27 @@ def wta_left(cost: np.ndarray, min_disp: int, cost_max: float):
                     bk = k
             best[y, x] = bc
             disp[y, x] = INF if bc >= cost_max else np.float32(min_disp + bk)
+
+
+def wta_left(cost: np.ndarray, min_disp: int, cost_max: float):
+    """Winner-take-all along D for each left pixel.
+
+    Returns ``(disparity, best_cost)``: float32 (H, W) integer-valued disparities (``+inf`` where
+    every hypothesis holds ``cost_max``, i.e. nothing could be matched) and the winning cost.
+    Ties go to the smallest disparity (deterministic).
+    """
+    h, w = cost.shape[0], cost.shape[1]
+    disp = np.empty((h, w), np.float32)
+    best = np.empty((h, w), np.float32)
+    for_rows(_wta_left_rows, h, cost, min_disp, cost_max, disp, best)
     return disp, best
 
 
-@njit(cache=True, parallel=True)
-def wta_right(cost: np.ndarray, min_disp: int, cost_max: float):
-    """Right-view winner-take-all from the left-referenced volume.
-
-    For right pixel ``xr`` and hypothesis ``k`` the matching left pixel is ``x = xr + d``
-    (``d = min_disp + k``), so ``C_R(xr, k) = cost[y, xr + d, k]`` (Hirschmüller 2008, §2.5).
-    Returns float32 (H, W) right-referenced disparities (``x_left = x_right + d``), +inf where
-    no hypothesis lands inside the image.
-    """
-    h, w, nd = cost.shape
-    disp = np.empty((h, w), np.float32)
-    for y in prange(h):
+@chunk_kernel
+def _wta_right_rows(cost, min_disp: int, cost_max: float, disp, y0: int, y1: int) -> None:
+    """:func:`wta_right` of rows ``[y0, y1)``, written into ``disp``."""
+    w, nd = cost.shape[1], cost.shape[2]
+    for y in range(y0, y1):
         for xr in range(w):
             bk = -1
             bc = np.float32(cost_max)
@@ -64,6 +63,19 @@ def wta_right(cost: np.ndarray, min_disp: int, cost_max: float):
                     bc = c
                     bk = k
             disp[y, xr] = INF if bk < 0 else np.float32(min_disp + bk)
+
+
+def wta_right(cost: np.ndarray, min_disp: int, cost_max: float):
+    """Right-view winner-take-all from the left-referenced volume.
+
+    For right pixel ``xr`` and hypothesis ``k`` the matching left pixel is ``x = xr + d``
+    (``d = min_disp + k``), so ``C_R(xr, k) = cost[y, xr + d, k]`` (Hirschmüller 2008, §2.5).
+    Returns float32 (H, W) right-referenced disparities (``x_left = x_right + d``), +inf where
+    no hypothesis lands inside the image.
+    """
+    h, w = cost.shape[0], cost.shape[1]
+    disp = np.empty((h, w), np.float32)
+    for_rows(_wta_right_rows, h, cost, min_disp, cost_max, disp)
     return disp
 
 
@@ -92,15 +104,11 @@ def _subpixel_offset(a0: float, a1: float, a2: float, equiangular: bool) -> floa
     return off
 
 
-@njit(cache=True, parallel=prange_only())
-def subpixel_left(cost: np.ndarray, disp: np.ndarray, min_disp: int, equiangular: bool) -> np.ndarray:
-    """Refine integer left disparities to sub-pixel by fitting the costs at d-1, d, d+1.
-
-    Pixels at the ends of the range, or whose neighbours are not both defined, keep the integer.
-    """
-    h, w, nd = cost.shape
-    out = disp.copy()
-    for y in prange(h):
+@chunk_kernel
+def _subpixel_left_rows(cost, disp, min_disp: int, equiangular: bool, out, y0: int, y1: int) -> None:
+    """:func:`subpixel_left` of rows ``[y0, y1)``, written into ``out``."""
+    w, nd = cost.shape[1], cost.shape[2]
+    for y in range(y0, y1):
         for x in range(w):
             d = disp[y, x]
             if not np.isfinite(d):
@@ -110,15 +118,23 @@ def subpixel_left(cost: np.ndarray, disp: np.ndarray, min_disp: int, equiangular
                 continue
             off = _subpixel_offset(cost[y, x, k - 1], cost[y, x, k], cost[y, x, k + 1], equiangular)
             out[y, x] = np.float32(d + off)
+
+
+def subpixel_left(cost: np.ndarray, disp: np.ndarray, min_disp: int, equiangular: bool) -> np.ndarray:
+    """Refine integer left disparities to sub-pixel by fitting the costs at d-1, d, d+1.
+
+    Pixels at the ends of the range, or whose neighbours are not both defined, keep the integer.
+    """
+    out = disp.copy()
+    for_rows(_subpixel_left_rows, cost.shape[0], cost, disp, min_disp, equiangular, out)
     return out
 
 
-@njit(cache=True, parallel=True)
-def subpixel_right(cost: np.ndarray, disp_right: np.ndarray, min_disp: int, equiangular: bool) -> np.ndarray:
-    """Sub-pixel refinement of right-view disparities along the volume's diagonal."""
-    h, w, nd = cost.shape
-    out = disp_right.copy()
-    for y in prange(h):
+@chunk_kernel
+def _subpixel_right_rows(cost, disp_right, min_disp: int, equiangular: bool, out, y0: int, y1: int) -> None:
+    """:func:`subpixel_right` of rows ``[y0, y1)``, written into ``out``."""
+    w, nd = cost.shape[1], cost.shape[2]
+    for y in range(y0, y1):
         for xr in range(w):
             d = disp_right[y, xr]
             if not np.isfinite(d):
@@ -132,4 +148,10 @@ def subpixel_right(cost: np.ndarray, disp_right: np.ndarray, min_disp: int, equi
                 continue
             off = _subpixel_offset(cost[y, x0, k - 1], cost[y, x0 + 1, k], cost[y, x2, k + 1], equiangular)
             out[y, xr] = np.float32(d + off)
+
+
+def subpixel_right(cost: np.ndarray, disp_right: np.ndarray, min_disp: int, equiangular: bool) -> np.ndarray:
+    """Sub-pixel refinement of right-view disparities along the volume's diagonal."""
+    out = disp_right.copy()
+    for_rows(_subpixel_right_rows, cost.shape[0], cost, disp_right, min_disp, equiangular, out)
     return out
