@@ -3,6 +3,7 @@
 
 import itertools
 import os
+import threading
 import warnings
 
 # The expected note of numba's parallel pipeline on a :func:`chunk_kernel` (it has no prange).
@@ -110,15 +111,29 @@ def _run(kernel, calls: list[tuple]) -> None:
         if _pool[0] is not None and _pool[2] == os.getpid():
             _pool[0].shutdown()
         _pool[:] = ThreadPoolExecutor(helpers, thread_name_prefix="stereocli-kernel"), helpers, os.getpid()
-    taken = itertools.count()  # next() is atomic: each call runs once, on whichever thread is free
+    # Every thread takes the next call from a shared counter (next() is atomic) until none is
+    # left. The caller waits for the calls taken, not for the helpers: a small kernel's calls
+    # may all be done before a helper wakes up (tens of microseconds), which then finds none.
+    n = len(calls)
+    taken = itertools.count()
+    lock = threading.Lock()
+    progress = {"done": 0, "error": None}
+    finished = threading.Event()
 
     def work() -> None:
-        while (i := next(taken)) < len(calls):
-            kernel(*calls[i])
+        while (i := next(taken)) < n:
+            try:
+                kernel(*calls[i])
+            except BaseException as exc:  # noqa: BLE001 - raised again in the calling thread
+                progress["error"] = progress["error"] or exc
+            with lock:
+                progress["done"] += 1
+                if progress["done"] == n:
+                    finished.set()
 
-    futures = [_pool[0].submit(work) for _ in range(helpers)]
-    try:
-        work()
-    finally:
-        for future in futures:
-            future.result()
+    for _ in range(helpers):
+        _pool[0].submit(work)
+    work()
+    finished.wait()
+    if progress["error"] is not None:
+        raise progress["error"]
