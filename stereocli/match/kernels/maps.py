@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
-from . import chunk_kernel, for_rows, prange_only
+from . import chunk_kernel, for_rows
 
 INF = np.float32(np.inf)
 
@@ -84,14 +84,31 @@ def fill_background(disp: np.ndarray) -> np.ndarray:
     return out
 
 
-@njit(cache=True, parallel=prange_only())
+@njit(cache=True, inline="always")
+def _bins_rows(disp, min_disp: int, ndisp: int, bins, y0: int, y1: int) -> None:
+    for y in range(y0, y1):
+        for x in range(disp.shape[1]):
+            v = disp[y, x] - min_disp + 0.5  # +inf and NaN fail both tests below
+            bins[y, x] = int(v) if (v >= 0.0 and v < ndisp) else -1
+
+
+@chunk_kernel
+def _disparity_bins_rows(disp, min_disp: int, ndisp: int, bins, y0: int, y1: int) -> None:
+    """:func:`disparity_bins` on rows ``y0`` to ``y1`` (exclusive) of ``bins``."""
+    _bins_rows(disp, min_disp, ndisp, bins, y0, y1)
+
+
 def disparity_bins(disp: np.ndarray, min_disp: int, ndisp: int) -> np.ndarray:
     """(H, W) int32 1-px bins ``round(d) − min_disp``; −1 for invalid (+inf) disparities and
     those outside ``[min_disp, min_disp + ndisp)``."""
-    h, w = disp.shape
-    bins = np.empty((h, w), np.int32)
-    for y in prange(h):
-        for x in range(w):
-            v = disp[y, x] - min_disp + 0.5  # +inf and NaN fail both tests below
-            bins[y, x] = int(v) if (v >= 0.0 and v < ndisp) else -1
+    bins = np.empty(disp.shape, np.int32)
+    for_rows(_disparity_bins_rows, disp.shape[0], disp, int(min_disp), int(ndisp), bins)
+    return bins
+
+
+@njit(cache=True)
+def disparity_bins_serial(disp: np.ndarray, min_disp: int, ndisp: int) -> np.ndarray:
+    """:func:`disparity_bins` for compiled callers (one thread)."""
+    bins = np.empty(disp.shape, np.int32)
+    _bins_rows(disp, min_disp, ndisp, bins, 0, disp.shape[0])
     return bins

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from .maps import disparity_bins
+from .maps import disparity_bins_serial
 
 INF = np.float32(np.inf)
 
@@ -49,7 +49,7 @@ def region_vote(disp: np.ndarray, arms: np.ndarray, min_disp: int, ndisp: int, m
         snap[v] = v // stride * stride
     # Each pixel's vote, computed once (a pixel is in the regions of up to ~300 outliers): its
     # 1-px bin, or −1 for an outlier or a disparity outside the range.
-    bins = disparity_bins(disp, min_disp, ndisp)
+    bins = disparity_bins_serial(disp, min_disp, ndisp)
     for i in prange(h):
         # Rows interleaved from both halves of the image: outliers cluster (occluded bands,
         # textureless areas), and prange gives each thread one contiguous block of i.
