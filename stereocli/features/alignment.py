@@ -97,15 +97,21 @@ def _ransac_plane(points: np.ndarray, dy: np.ndarray) -> np.ndarray:
     design = np.column_stack([points, np.ones(len(points))]) / scale
     rng = np.random.default_rng(0)
     samples = np.array([rng.choice(len(dy), 3, replace=False) for _ in range(DRAWS)])
-    best, best_count = np.zeros(3), -1
-    for sample in samples:
-        try:
-            coef = np.linalg.solve(design[sample], dy[sample])
-        except np.linalg.LinAlgError:  # three collinear points: no plane
-            continue
-        count = int(np.count_nonzero(np.abs(design @ coef - dy) <= INLIER_PX))
-        if count > best_count:
-            best, best_count = coef, count
+    # Every draw's plane at once (a stack of 3x3 systems); with a degenerate draw (three
+    # collinear points: no plane) among them, draw by draw, skipping those.
+    try:
+        coefs = np.linalg.solve(design[samples], dy[samples][..., None])[..., 0]
+        usable = np.ones(len(samples), bool)
+    except np.linalg.LinAlgError:
+        coefs, usable = np.zeros((len(samples), 3)), np.zeros(len(samples), bool)
+        for i, sample in enumerate(samples):
+            try:
+                coefs[i], usable[i] = np.linalg.solve(design[sample], dy[sample]), True
+            except np.linalg.LinAlgError:
+                pass
+    counts = np.count_nonzero(np.abs(design @ coefs.T - dy[:, None]) <= INLIER_PX, axis=0)
+    counts[~usable] = -1
+    best = coefs[int(np.argmax(counts))] if usable.any() else np.zeros(3)  # the first of the most
     inliers = np.abs(design @ best - dy) <= INLIER_PX
     if inliers.sum() >= 3:
         best, *_ = np.linalg.lstsq(design[inliers], dy[inliers], rcond=None)
