@@ -42,3 +42,12 @@ def test_an_error_in_any_chunk_reaches_the_caller(threads):
     with pytest.raises(ValueError, match="chunk 5"):
         kernels.for_chunks(chunk, 8)
     kernels.for_chunks(lambda c: None, 8)  # the pool still works afterwards
+
+
+def test_calls_with_fewer_chunks_than_threads_keep_the_pool(monkeypatch):
+    monkeypatch.setattr(kernels, "kernel_threads", lambda: 3)
+    kernels.for_rows(lambda y0, y1: None, 50)
+    pool = kernels._pool[0]
+    kernels.for_chunks(lambda c: None, 2)  # two stripes on three threads
+    kernels.for_rows(lambda y0, y1: None, 50)
+    assert kernels._pool[0] is pool

@@ -99,18 +99,20 @@ def for_rows(kernel, n_rows: int, *args) -> None:
 
 
 def _run(kernel, calls: list[tuple]) -> None:
-    threads = min(kernel_threads(), len(calls))
-    if threads <= 1:
+    threads = kernel_threads()
+    helpers = min(threads, len(calls)) - 1  # the calling thread works too
+    if helpers <= 0:
         for call in calls:
             kernel(*call)
         return
-    helpers = threads - 1  # the calling thread works too
-    if _pool[0] is None or _pool[1] != helpers or _pool[2] != os.getpid():
+    # One pool of threads − 1 for every call, whatever its number of chunks: a call with fewer
+    # chunks than threads (SGM's two stripes) just leaves some idle.
+    if _pool[0] is None or _pool[1] != threads - 1 or _pool[2] != os.getpid():
         from concurrent.futures import ThreadPoolExecutor
 
         if _pool[0] is not None and _pool[2] == os.getpid():
             _pool[0].shutdown()
-        _pool[:] = ThreadPoolExecutor(helpers, thread_name_prefix="stereocli-kernel"), helpers, os.getpid()
+        _pool[:] = ThreadPoolExecutor(threads - 1, thread_name_prefix="stereocli-kernel"), threads - 1, os.getpid()
     # Every thread takes the next call from a shared counter (next() is atomic) until none is
     # left. The caller waits for the calls taken, not for the helpers: a small kernel's calls
     # may all be done before a helper wakes up (tens of microseconds), which then finds none.
