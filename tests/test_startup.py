@@ -89,11 +89,58 @@ def test_the_compile_notice_says_so_on_stderr_unless_quiet(capsys):
 
 
 def test_warm_up_plan_spreads_the_longest_tasks_first():
-    assert warmup.plan(["default"], 2) == [[("default", "volume_large")],
-                                           [("default", "maps"), ("default", "volume_small")]]
-    assert warmup.plan(["default"], 1) == [[("default", t) for t in ("volume_large", "maps", "volume_small")]]
+    # The fine level and the coarse level's kernels compile in different processes.
+    assert warmup.plan(["default"], 2) == [[("default", "volume_large"), ("default", "maps_1")],
+                                           [("default", "maps_2"), ("default", "volume_small")]]
+    assert warmup.plan(["default"], 1) == [[("default", t) for t in ("volume_large", "maps_2", "volume_small",
+                                                                     "maps_1")]]
     slots = warmup.plan(["a", "b"], 3)
     assert sorted(t for s in slots for t in s) == sorted((c, t) for c in "ab" for t in warmup.TASKS)
+
+
+def test_the_map_tasks_share_the_map_refinements_between_them(monkeypatch):
+    # Every map refinement of the default runs in exactly one of the two map tasks.
+    from stereocli.match import pipeline
+    from stereocli.match.config import build_config
+
+    ran = {}
+    real_finish = pipeline.finish
+
+    def finish(prepared, results, config):
+        ran[current] = [c.stage.name for c in config.refinement if not c.stage.traits.needs_cost]
+        return real_finish(prepared, results, config)
+
+    monkeypatch.setattr(pipeline, "finish", finish)
+    config = build_config([], [])
+    for current in ("maps_1", "maps_2"):
+        warmup.run_task(current, config)
+    every = [c.stage.name for c in config.refinement if not c.stage.traits.needs_cost]
+    assert ran["maps_1"] == every[0::2] and ran["maps_2"] == every[1::2]
+    assert sorted(ran["maps_1"] + ran["maps_2"]) == sorted(every) and len(every) >= 4
+
+
+def test_given_coarse_disparities_replace_the_coarse_level(monkeypatch):
+    # Handing the fine level the coarse level's own result gives the same map, and the coarse
+    # level does not run (the warm-up compiles the two levels in different processes).
+    from stereocli.match.config import build_config
+    from stereocli.match.optimize import sgm as osgm
+    from stereocli.match.pipeline import prepare, run_strip, strip_input
+
+    config = build_config([], ["optimizer.coarse_min_volume=0"])
+    left, right = warmup.synthetic_pair(160, 96, 32)
+    prepared = prepare(left, right, config, ndisp=32)
+    computed = run_strip(strip_input(prepared, 0, 96), config, 0, 96)
+    sub = strip_input(prepared, 0, 96)
+    coarse = osgm.coarse_disparity(sub, config.optimizer.params, config.cost)
+    sub = strip_input(prepared, 0, 96)
+    sub.extras[osgm.GIVEN_COARSE] = coarse
+    calls = []
+    real = osgm.coarse_disparity
+    monkeypatch.setattr(osgm, "coarse_disparity", lambda *a: calls.append(1) or real(*a))
+    given = run_strip(sub, config, 0, 96)
+    assert calls == [] and osgm.GIVEN_COARSE not in given.extras
+    assert np.array_equal(given.disparity, computed.disparity)
+    assert np.isfinite(computed.disparity).mean() > 0.5
 
 
 def test_synthetic_pair_shows_a_box_in_front_of_a_plane():

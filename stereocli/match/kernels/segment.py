@@ -708,6 +708,11 @@ def _add_candidate(cand_m, cand_s, seen, touched, cn: int, k: int, m: float, s: 
     return cn
 
 
+#: Columns a vertical pass copies at once into row buffers (a tile of whole cache lines), so
+#: the line code reads contiguous memory in both directions and compiles once.
+_COLUMN_BLOCK = 16
+
+
 @chunk_kernel
 def _vote_chunk(disp, bins, packed, centre, passed, min_change: int, max_bins: int, n_bins: int,
                 vertical: bool, out, n_chunks: int, chunk: int) -> None:
@@ -732,75 +737,98 @@ def _vote_chunk(disp, bins, packed, centre, passed, min_change: int, max_bins: i
     cand_s = np.zeros(n_bins, np.float64)
     seen = np.zeros(n_bins, np.bool_)
     touched = np.empty(2 * max_bins + 3, np.int32)
-    for line in range(chunk * n_lines // n_chunks, (chunk + 1) * n_lines // n_chunks):
-        n_centres = 0
-        for p in range(n_pos):
-            if centre[p, line] if vertical else centre[line, p]:
-                centres[n_centres] = p
-                n_centres += 1
-        if n_centres == 0:
-            continue
-        # Forward: the running vote arriving at each centre (before its own vote). The
-        # current run of one bin is kept in true values (decayed by one multiply-add per
-        # pixel); the other bins in stored values, true = stored × scale, so decaying them
-        # is one multiplication of ``scale``.
-        n, last, scale, run_k, run_m, run_s = _empty_vote()
-        ci = 0
-        for p in range(n_pos):
-            if p > 0:
-                if vertical:
-                    step = _packed_distance(packed[p, line], packed[p - 1, line])
-                else:
-                    step = _packed_distance(packed[line, p], packed[line, p - 1])
-                decay[p] = passed[step]  # kept for the backward pass
-                scale, run_m, run_s = _decay_vote(mm, ss, n, scale, run_m, run_s, decay[p])
-            if ci < n_centres and centres[ci] == p:
-                n, last, run_k, run_m, run_s = _add_vote(kk, mm, ss, n, last, scale, run_k, run_m, run_s, -1, 0.0)
-                for j in range(n):
-                    fk[ci, j] = kk[j]
-                    fm[ci, j] = mm[j] * scale
-                    fs[ci, j] = ss[j] * scale
-                fn[ci] = n
-                ci += 1
-            k = bins[p, line] if vertical else bins[line, p]
-            if k >= 0:
-                d = disp[p, line] if vertical else disp[line, p]
-                n, last, run_k, run_m, run_s = _add_vote(kk, mm, ss, n, last, scale, run_k, run_m, run_s, k, d)
-        # Backward, deciding each centre from its own vote and both running votes.
-        n, last, scale, run_k, run_m, run_s = _empty_vote()
-        ci = n_centres - 1
-        for p in range(n_pos - 1, -1, -1):
-            if p < n_pos - 1:
-                scale, run_m, run_s = _decay_vote(mm, ss, n, scale, run_m, run_s, decay[p + 1])
-            k = bins[p, line] if vertical else bins[line, p]
-            d = disp[p, line] if vertical else disp[line, p]
-            if ci >= 0 and centres[ci] == p:
-                n, last, run_k, run_m, run_s = _add_vote(kk, mm, ss, n, last, scale, run_k, run_m, run_s, -1, 0.0)
-                # Own vote, then the forward and the backward running votes.
-                cn = _add_candidate(cand_m, cand_s, seen, touched, 0, k, 1.0, d)
-                for j in range(fn[ci]):
-                    cn = _add_candidate(cand_m, cand_s, seen, touched, cn, fk[ci, j], fm[ci, j], fs[ci, j])
-                for j in range(n):
-                    cn = _add_candidate(cand_m, cand_s, seen, touched, cn, kk[j], mm[j] * scale, ss[j] * scale)
-                best = touched[0]
-                for i in range(1, cn):
-                    b = touched[i]
-                    if cand_m[b] > cand_m[best] or (cand_m[b] == cand_m[best] and b < best):
-                        best = b
-                if abs(best - k) >= min_change:
-                    v = np.float32(cand_s[best] / cand_m[best])
-                    if vertical:
-                        out[p, line] = v
-                    else:
-                        out[line, p] = v
-                for i in range(cn):
-                    b = touched[i]
-                    cand_m[b] = 0.0
-                    cand_s[b] = 0.0
-                    seen[b] = False
-                ci -= 1
-            if k >= 0:
-                n, last, run_k, run_m, run_s = _add_vote(kk, mm, ss, n, last, scale, run_k, run_m, run_s, k, d)
+    # A vertical pass copies _COLUMN_BLOCK columns at a time into these, as rows.
+    block = _COLUMN_BLOCK if vertical else 0
+    disp_t = np.empty((block, n_pos), np.float32)
+    bins_t = np.empty((block, n_pos), np.int32)
+    packed_t = np.empty((block, n_pos), np.int64)
+    centre_t = np.empty((block, n_pos), np.bool_)
+    first, stop = chunk * n_lines // n_chunks, (chunk + 1) * n_lines // n_chunks
+    for block_start in range(first, stop, max(block, 1)):
+        if vertical:
+            nb = min(block, stop - block_start)
+            for y in range(h):
+                for j in range(nb):
+                    disp_t[j, y] = disp[y, block_start + j]
+                    bins_t[j, y] = bins[y, block_start + j]
+                    packed_t[j, y] = packed[y, block_start + j]
+                    centre_t[j, y] = centre[y, block_start + j]
+        else:
+            nb = 1
+        for j in range(nb):
+            line = block_start + j
+            if vertical:
+                d_line, b_line, c_line, p_line = disp_t[j], bins_t[j], centre_t[j], packed_t[j]
+            else:
+                d_line, b_line, c_line, p_line = disp[line], bins[line], centre[line], packed[line]
+            n_centres = 0
+            for p in range(n_pos):
+                if c_line[p]:
+                    centres[n_centres] = p
+                    n_centres += 1
+            if n_centres == 0:
+                continue
+            # Forward: the running vote arriving at each centre (before its own vote). The
+            # current run of one bin is kept in true values (decayed by one multiply-add per
+            # pixel); the other bins in stored values, true = stored × scale, so decaying them
+            # is one multiplication of ``scale``.
+            # Votes beyond the last centre never reach a decision in this direction (nor, in
+            # the backward pass, votes before the first), so each pass stops there.
+            n, last, scale, run_k, run_m, run_s = _empty_vote()
+            ci = 0
+            for p in range(centres[n_centres - 1] + 1):
+                if p > 0:
+                    decay[p] = passed[_packed_distance(p_line[p], p_line[p - 1])]  # kept for the backward pass
+                    scale, run_m, run_s = _decay_vote(mm, ss, n, scale, run_m, run_s, decay[p])
+                if ci < n_centres and centres[ci] == p:
+                    n, last, run_k, run_m, run_s = _add_vote(kk, mm, ss, n, last, scale, run_k, run_m, run_s, -1, 0.0)
+                    for i in range(n):
+                        fk[ci, i] = kk[i]
+                        fm[ci, i] = mm[i] * scale
+                        fs[ci, i] = ss[i] * scale
+                    fn[ci] = n
+                    ci += 1
+                k = b_line[p]
+                if k >= 0:
+                    n, last, run_k, run_m, run_s = _add_vote(kk, mm, ss, n, last, scale, run_k, run_m, run_s, k,
+                                                             d_line[p])
+            # Backward, deciding each centre from its own vote and both running votes.
+            n, last, scale, run_k, run_m, run_s = _empty_vote()
+            ci = n_centres - 1
+            for p in range(n_pos - 1, centres[0] - 1, -1):
+                if p < n_pos - 1:
+                    if p >= centres[n_centres - 1]:  # beyond the forward pass: its weight is not kept
+                        decay[p + 1] = passed[_packed_distance(p_line[p + 1], p_line[p])]
+                    scale, run_m, run_s = _decay_vote(mm, ss, n, scale, run_m, run_s, decay[p + 1])
+                k = b_line[p]
+                d = d_line[p]
+                if ci >= 0 and centres[ci] == p:
+                    n, last, run_k, run_m, run_s = _add_vote(kk, mm, ss, n, last, scale, run_k, run_m, run_s, -1, 0.0)
+                    # Own vote, then the forward and the backward running votes.
+                    cn = _add_candidate(cand_m, cand_s, seen, touched, 0, k, 1.0, d)
+                    for i in range(fn[ci]):
+                        cn = _add_candidate(cand_m, cand_s, seen, touched, cn, fk[ci, i], fm[ci, i], fs[ci, i])
+                    for i in range(n):
+                        cn = _add_candidate(cand_m, cand_s, seen, touched, cn, kk[i], mm[i] * scale, ss[i] * scale)
+                    best = touched[0]
+                    for i in range(1, cn):
+                        b = touched[i]
+                        if cand_m[b] > cand_m[best] or (cand_m[b] == cand_m[best] and b < best):
+                            best = b
+                    if abs(best - k) >= min_change:
+                        v = np.float32(cand_s[best] / cand_m[best])
+                        if vertical:
+                            out[p, line] = v
+                        else:
+                            out[line, p] = v
+                    for i in range(cn):
+                        b = touched[i]
+                        cand_m[b] = 0.0
+                        cand_s[b] = 0.0
+                        seen[b] = False
+                    ci -= 1
+                if k >= 0:
+                    n, last, run_k, run_m, run_s = _add_vote(kk, mm, ss, n, last, scale, run_k, run_m, run_s, k, d)
 
 
 def geodesic_vote_line(disp, bins, packed, centre, passed, min_change: int, max_bins: int, n_bins: int,

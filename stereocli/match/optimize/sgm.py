@@ -39,6 +39,11 @@ from ..state import MatchState, Wants, WinnerCosts
 S_MAX = 65535
 #: Most disparities the kernels handle (the winner's index is packed in 16 bits).
 MAX_NDISP = 65535
+#: ``state.extras`` key of half-resolution disparities handed to the coarse-to-fine search
+#: (as :func:`coarse_disparity` returns them): it then skips its coarse level. The warm-up
+#: uses it to compile the fine level's kernels in one process while another compiles the
+#: coarse level's.
+GIVEN_COARSE = "sgm_given_coarse_disparity"
 
 
 @dataclass(frozen=True)
@@ -159,7 +164,9 @@ def _run_windowed(state: MatchState, p: SGMParams, cost) -> None:
     """Coarse-to-fine SGM: windows from the half-resolution disparities, costs on the windows
     only (the cost stage's ``windowed`` kernel, else its dense volume gathered), windowed
     SGM. Leaves ``winner`` (or, if a later stage needs it, the dense sums in ``cost``)."""
-    coarse = coarse_disparity(state, p, cost)
+    coarse = state.extras.pop(GIVEN_COARSE, None)
+    if coarse is None:
+        coarse = coarse_disparity(state, p, cost)
     lo, hi = search_windows(coarse, state.shape, state.min_disp, state.ndisp, p.margin, p.radius, p.max_window)
     runs = kw.window_runs(lo, hi, state.ndisp, p.align)
     windowed = cost.stage.traits.windowed
