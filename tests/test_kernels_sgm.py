@@ -115,14 +115,18 @@ def _layered_costs(h: int, w: int, nd: int, seed: int):
     return cq, (truth * 40).astype(np.float32), truth
 
 
-@pytest.mark.parametrize("height", [96, 200])
+@pytest.mark.parametrize("height", [2, 3, 96, 201])
 def test_sgm_row_stripes_equal_whole_image_passes(height):
-    # The full-range kernel runs both passes within each of two row stripes, starting
-    # STRIPE_OVERLAP rows beyond it. Up to 2 × 48 rows every pass still covers the whole image;
-    # on 200 rows the paths through the seam (row 100) start 48 rows away, by which point
-    # these integer path costs have settled: the sums equal those of whole-image passes
-    # exactly. (With an overlap of 2 rows, rows 95-105 differ.)
-    assert ks.STRIPES == 2 and ks.STRIPE_OVERLAP == 48
+    # Two threads share the passes over the two halves in two phases, each phase continuing
+    # the other's paths: every path runs through the whole image, so the sums equal those of
+    # whole-image passes exactly, also across the seam at H // 2 and on random costs, where a
+    # path cut short anywhere would show.
+    assert ks.STRIPES == 2
+    rng = np.random.default_rng(height)
+    cq = rng.integers(0, 40, (height, 16, 8)).astype(np.uint8)
+    guide = rng.integers(0, 255, (height, 16)).astype(np.float32)
+    s, disp, right = ks.sgm_aggregate(cq, guide, 8, 5, 40, 4.0, 0, True)
+    np.testing.assert_array_equal(s.astype(np.int64), reference_sgm(cq, guide, 8, 5, 40, 4.0))
     cq, guide, truth = _layered_costs(height, 16, 8, 4)
     s, disp, _ = ks.sgm_aggregate(cq, guide, 4, 5, 40, 4.0, 0, False)
     np.testing.assert_array_equal(s.astype(np.int64), reference_sgm(cq, guide, 4, 5, 40, 4.0))
@@ -152,7 +156,7 @@ def on_one_and_two_threads(run):
 
 def test_sgm_deterministic_across_thread_counts():
     rng = np.random.default_rng(9)
-    # Taller than two stripes and their overlaps, so the seam rows take truncated paths.
+    # Taller than two stripes, so the passes cross the seam between the phases.
     cq = rng.integers(0, 255, (130, 70, 23)).astype(np.uint8)
     guide = rng.random((130, 70)).astype(np.float32) * 255
     a, b = on_one_and_two_threads(lambda: ks.sgm_aggregate(cq, guide, 8, 20, 200, 16.0, 0, True))

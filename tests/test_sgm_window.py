@@ -67,11 +67,13 @@ def test_full_windows_equal_the_dense_kernel(paths):
 
 
 def test_row_stripes_on_a_tall_image():
-    # 200 rows: two row stripes, each pass warming up over 48 rows of the other stripe, whose
-    # sums must go to the kernel's scratch row, not into the other stripe's sums (written
-    # there, they changed rows 52-99). Against the reference on narrow windows around the
-    # truth, and against the dense kernel (same stripes) on full windows.
-    cq, guide, truth = _layered_costs(200, 16, 8, 1)
+    # 201 rows: two row stripes and two phases, each pass continuing through the other half.
+    # Against the reference on narrow windows around the truth and on random windows and
+    # costs, and against the dense kernel on full windows.
+    cq, guide, lo, hi = _random_problem(7, 201, 15, 9, 5)
+    _, dense = _windowed(cq, guide, 8, lo, hi, 8)
+    np.testing.assert_array_equal(dense.astype(np.int64), reference_sgm(cq, guide, 8, 3, 20, 4.0, lo, hi))
+    cq, guide, truth = _layered_costs(201, 16, 8, 1)
     rng = np.random.default_rng(1)
     lo = np.clip(truth - rng.integers(0, 3, truth.shape), 0, 7).astype(np.int32)
     hi = np.clip(truth + 1 + rng.integers(0, 3, truth.shape), 1, 8).astype(np.int32)

@@ -21,18 +21,18 @@ Layout and numerics (see ``tests/test_kernels_sgm.py`` for the pure-numpy refere
   one uint16 volume ``S``: the forward pass *writes* its sums, the backward pass *adds* its
   own and takes the winner (left and right views) as soon as a row's total is complete. So
   there is no separate combine sweep and only one uint16 volume.
-* The image is cut into ``STRIPES`` (2) row stripes, one thread each, and both passes run
-  within a stripe, starting ``STRIPE_OVERLAP`` (48) rows beyond it so that the paths from
-  above and below arrive warmed up (OpenCV's SGBM 3WAY overlaps its stripes likewise). The
-  paths through the seam are therefore truncated at 48 rows (``S`` differs from whole-image
-  passes only there; where a stripe and its overlap reach the image border, as on images of
-  at most 96 rows, it is exact). Each thread then works on its own rows only, which the
-  later stages, parallel over rows in the same halves, read from the same core. This matters
-  most on machines where data written on one core is slow to reach another: two whole-image
-  passes with the threads swapping halves cost up to a fifth more time there.
-* The stripe plan does not depend on the thread count, and every element is computed by one
-  thread with integer arithmetic in a fixed order, so the result is bit-identical for any
-  thread count.
+* Two threads share the two passes over the image's top and bottom halves (``STRIPES``, see
+  :func:`stripe_pass`) in two phases: first the top half's forward pass and the bottom half's
+  backward pass, then the top half's backward pass and the bottom half's forward pass, each
+  continuing from the path costs the other thread's pass left at the middle row. So every
+  path runs through the whole image (``S`` is exactly that of whole-image passes) and no row
+  is computed twice, while each thread writes and then completes the sums of its own half,
+  which the later stages, parallel over rows in the same halves, read from the same core
+  (data written on one core can be slow to reach another). Only the three rows of path costs
+  a pass carries move from one thread to the other between the phases.
+* The plan does not depend on the thread count, and every element is computed by one thread
+  with integer arithmetic in a fixed order, so the result is bit-identical for any thread
+  count.
 """
 
 from __future__ import annotations
@@ -183,11 +183,11 @@ def _min_packed(s, base, k0: int, k1: int, rbest, rb, want_right: bool) -> np.ui
 
 
 @njit(cache=True)
-def _horizontal_row(cf, mul, guide, y: int, forward: bool, p1: int, p2: int, gamma: float, hf, hrow, pens, tf,
-                    w: int, und) -> None:
+def _horizontal_row(cf, mul, guide, y: int, forward: bool, add: bool, p1: int, p2: int, gamma: float, hf, hrow,
+                    pens, tf, w: int, und) -> None:
     """The horizontal path of row ``y`` (from the left, or the right when not ``forward``):
-    writes its costs into the row's sums (the forward pass, the first to reach them) or adds
-    them (the backward pass). ``hf`` holds two buffers of
+    writes its costs into the row's sums (the first pass to reach them) or adds them (``add``:
+    the second). ``hf`` holds two buffers of
     ``hrow`` int16 used in turn; the penalties go to ``pens``. (The row's paths are small
     functions of their own rather than loops inside :func:`_pass_rows`: there LLVM kept their
     state on the stack, and the kernel took 1.5× as long on Tsukuba's D = 16.)"""
@@ -200,23 +200,23 @@ def _horizontal_row(cf, mul, guide, y: int, forward: bool, p1: int, p2: int, gam
     mul16 = np.int16(mul)
     first = 0 if forward else w - 1
     pix = (row + np.uint64(first)) * und
-    hmin = _start(cf, pix, und, mul, hf, np.uint64(0), tf, pix, not forward)
+    hmin = _start(cf, pix, und, mul, hf, np.uint64(0), tf, pix, add)
     for j in range(1, w):
         x = j if forward else w - 1 - j
         pix = (row + np.uint64(x)) * und
         pm = np.int16(hmin)
         hmin = _step(cf, pix, und, mul16, hf, np.uint64((j + 1) % 2) * hrow, pm, np.int16(pm + pens[x]), pp1,
-                     np.uint64(j % 2) * hrow, tf, pix, not forward)
+                     np.uint64(j % 2) * hrow, tf, pix, add)
 
 
 @njit(cache=True)
-def _direction_row(cf, mul, lf, tf, mins, pens, k: int, ring: int, ip: int, pr: int, shift: int, row0, srow0,
-                   w: int, und, lrow, cur_row, prev_row, p1: int, i_start: int) -> None:
+def _direction_row(cf, mul, lf, tf, mins, pens, k: int, ring: int, ip: int, pr: int, shift: int, row0,
+                   w: int, und, lrow, cur_row, prev_row, p1: int) -> None:
     """One row of the path from the rows above (below), direction ``k``: its predecessor of x
     is x − ``shift`` in pass row ``ip`` (ring slot ``pr``), or none (the path starts: ``ip``
-    before the pass's first row ``i_start``). Costs are read at row ``row0`` of ``cf``, the
-    sums added at row ``srow0`` of ``tf``. A small function of its own, so the compiler keeps
-    its loop variables in registers."""
+    before the image's first row in pass order). Costs are read and the sums added at row
+    ``row0`` of ``cf`` and ``tf``. A small function of its own, so the compiler keeps its loop
+    variables in registers."""
     one = np.uint64(1)
     two = np.uint64(2)
     pp1 = np.int16(p1)
@@ -224,9 +224,9 @@ def _direction_row(cf, mul, lf, tf, mins, pens, k: int, ring: int, ip: int, pr: 
     for x in range(w):
         xp = x - shift
         pix = (row0 + np.uint64(x)) * und
-        spix = (srow0 + np.uint64(x)) * und
+        spix = pix
         cur = cur_row + np.uint64(x) * lrow
-        if ip < i_start or xp < 0 or xp >= w:
+        if ip < 0 or xp < 0 or xp >= w:
             mins[k, ring, x] = _start(cf, pix, und, mul, lf, cur, tf, spix, True)
         else:
             # :func:`_step` written out: through the inlined call this loop ran 25-30 % slower.
@@ -245,22 +245,22 @@ def _direction_row(cf, mul, lf, tf, mins, pens, k: int, ring: int, ip: int, pr: 
 
 
 @njit(cache=True)
-def _pass_rows(cq, mul, guide, total, dirs, forward: bool, i0: int, i1: int, i_keep: int,
-               p1: int, p2: int, gamma: float, lbuf, mins, hbuf, pens, scratch,
+def _pass_rows(cq, mul, guide, total, dirs, forward: bool, i0: int, i1: int, second: bool,
+               p1: int, p2: int, gamma: float, lbuf, mins, hbuf, pens,
                disp, disp_r, rbest, min_disp: int) -> None:
     """Rows ``i0 ≤ i < i1`` (in pass order) of one raster pass; see the module docstring.
 
     ``forward``: rows top to bottom, pixels left to right, the predecessor of (y, x) is
     (y, x − 1) for the horizontal path and (y − dy, x − dx) for the others; backward is the
-    mirror image. The paths start at row ``i0``. Rows before ``i_keep`` only warm the paths
-    from the rows above (below) up: their sums go to ``scratch`` (one row, W·D uint16) and
-    there is no horizontal path. From ``i_keep`` on, the forward pass writes its path sums
-    into ``total``, the backward pass adds its own and takes the winners (``disp``/``disp_r``
-    are written there).
-    ``lbuf`` (K, 3, W + 1, D + 2) int16, ``mins`` (K, 3, W) int16, ``hbuf`` (2, D + 2) int16 and
-    ``pens`` (K + 1, W) int32 (each possibly longer: ``GAP``) carry the pass's state from one
-    call to the next; ``rbest`` (W,) uint32 is scratch for the right view. ``cq``, ``total``,
-    ``lbuf`` and ``hbuf`` are C-contiguous and read through flat views (see :func:`_start`).
+    mirror image. The paths start at the image border (pass row 0); a call that starts
+    further on continues the path costs in ``lbuf``/``mins``, which an earlier call of the
+    same pass left there. The first pass over a row writes its path sums into ``total``; the
+    ``second`` adds its own and takes the winners (``disp``/``disp_r`` are written there).
+    ``lbuf`` (K, 3, W + 1, D + 2) int16 and ``mins`` (K, 3, W) int16 carry the pass's state
+    (the last three rows); ``hbuf`` (2, D + 2) int16, ``pens`` (K + 1, W) int32 and
+    ``rbest`` (W,) uint32 (the right view) are the calling thread's scratch (each possibly
+    longer: ``GAP``). ``cq``, ``total``, ``lbuf`` and ``hbuf`` are C-contiguous and read
+    through flat views (see :func:`_start`).
     """
     h, w, nd = cq.shape
     nk = dirs.shape[0]
@@ -268,7 +268,6 @@ def _pass_rows(cq, mul, guide, total, dirs, forward: bool, i0: int, i1: int, i_k
     want_right = disp_r.shape[0] > 0
     cf = cq.reshape(-1)
     tf = total.reshape(-1)
-    sf = scratch.reshape(-1)
     lf = lbuf.reshape(-1)
     hf = hbuf.reshape(-1)
     und = np.uint64(nd)
@@ -288,16 +287,13 @@ def _pass_rows(cq, mul, guide, total, dirs, forward: bool, i0: int, i1: int, i_k
                 if 0 <= xp < w:
                     pens[k + 1, x] = _penalty2(guide[y, x], guide[y - s * dy, xp], p1, p2, gamma)
         row0 = np.uint64(y * w)
-        kept = i >= i_keep
-        if kept:
-            # The horizontal path writes the row's sums in the forward pass; every other path adds to them.
-            _horizontal_row(cf, mul, guide, y, forward, p1, p2, gamma, hf, hrow, pens[0], tf, w, und)
+        # The horizontal path writes the row's sums in the first pass; every other path adds to them.
+        _horizontal_row(cf, mul, guide, y, forward, second, p1, p2, gamma, hf, hrow, pens[0], tf, w, und)
         for k in range(nk):
             ip = i - dirs[k, 0]
-            _direction_row(cf, mul, lf, tf if kept else sf, mins, pens, k, ring, ip, ip % 3, s * dirs[k, 1], row0,
-                           row0 if kept else np.uint64(0), w, und, lrow, np.uint64(k * 3 + ring) * lplane,
-                           np.uint64(k * 3 + ip % 3) * lplane, p1, i0)
-        if kept and not forward:
+            _direction_row(cf, mul, lf, tf, mins, pens, k, ring, ip, ip % 3, s * dirs[k, 1], row0, w, und, lrow,
+                           np.uint64(k * 3 + ring) * lplane, np.uint64(k * 3 + ip % 3) * lplane, p1)
+        if second:
             # The row's sums are complete: left WTA among hypotheses whose right pixel x − d
             # lies inside the image, and the right view (Hirschmüller 2008 §2.5, same volume:
             # right pixel xr takes the d minimising S[y, xr + d, d]) in the same pass: each left
@@ -324,73 +320,67 @@ def _pass_rows(cq, mul, guide, total, dirs, forward: bool, i0: int, i1: int, i_k
                         disp_r[y, xr] = INF
 
 
-#: Row stripes of the full-range search, each with its own forward and backward pass (one
-#: thread each). A fixed number, so the result does not depend on the thread count.
+#: Row stripes (the image's top and bottom halves), one thread each (:func:`stripe_pass`). A
+#: fixed number, so the result does not depend on the thread count.
 STRIPES = 2
-#: Rows beyond a stripe's own that its passes run through first, so that the paths from above
-#: (below) arrive warmed up, as they would through the whole image (OpenCV's SGBM 3WAY
-#: overlaps its stripes the same way). Where a stripe and its overlap reach the image border
-#: the sums are exactly those of whole-image passes.
-STRIPE_OVERLAP = 48
 
 
 @njit(cache=True, inline="always")
-def stripe_pass(stripe: int, j: int, h: int):
-    """Pass ``j`` (0: forward, 1: backward) of row stripe ``stripe`` of an image of ``h`` rows:
-    ``(forward, i0, i1, i_keep)``, rows in pass order (row ``i`` is ``y = i`` forward and
-    ``h − 1 − i`` backward). The pass starts ``STRIPE_OVERLAP`` rows beyond the stripe (at
-    ``i0``) and keeps sums from ``i_keep`` on; an empty stripe gives ``i0 = i1``."""
-    y0 = stripe * h // STRIPES
-    y1 = (stripe + 1) * h // STRIPES
-    forward = j == 0
-    if y1 <= y0:
-        return forward, 0, 0, 0
-    if forward:
-        return forward, max(0, y0 - STRIPE_OVERLAP), y1, y0
-    return forward, h - min(h, y1 + STRIPE_OVERLAP), h - y0, h - y1
+def stripe_pass(stripe: int, phase: int, h: int):
+    """The part of a raster pass that stripe ``stripe`` (0: rows ``y < h // 2``, 1: the others)
+    runs in ``phase`` (0 or 1) on an image of ``h`` rows: ``(forward, i0, i1, second)``, rows
+    ``i0 ≤ i < i1`` in pass order (row ``i`` is ``y = i`` forward and ``h − 1 − i``
+    backward). ``second``: the other pass has been over these rows already, so this one adds
+    its sums and takes the winners. Phase 0 runs the top half's forward pass and the bottom
+    half's backward pass, both from the image border; phase 1 the two passes on, through the
+    other half."""
+    middle = h // 2
+    if stripe == 0:
+        if phase == 0:
+            return True, 0, middle, False
+        return False, h - middle, h, True
+    if phase == 0:
+        return False, 0, h - middle, False
+    return True, middle, h, True
 
 
 @chunk_kernel
 def _sgm_two_pass_chunk(cq, mul: int, guide, total, dirs, p1: int, p2: int, gamma: float, min_disp: int, lbuf,
-                        hbuf, mins, pens, scratch, rbest, disp, disp_r, t: int) -> None:
-    """Both passes of row stripe ``t`` (:func:`sgm_two_pass`), on that stripe's buffers."""
+                        hbuf, mins, pens, rbest, disp, disp_r, phase: int, t: int) -> None:
+    """Stripe ``t``'s part of ``phase`` (:func:`stripe_pass`): the path state of the pass it
+    continues (``lbuf``/``mins`` index 0 forward, 1 backward), the stripe's own scratch."""
     h = cq.shape[0]
     # Without reference counts (:func:`borrowed`): _pass_rows makes views of them pixel by pixel.
     cq, guide, total, dirs, disp, disp_r = borrowed(cq), borrowed(guide), borrowed(total), borrowed(dirs), \
         borrowed(disp), borrowed(disp_r)
-    lbuf, hbuf, mins, pens = borrowed(lbuf), borrowed(hbuf), borrowed(mins), borrowed(pens)
-    scratch, rbest = borrowed(scratch), borrowed(rbest)
-    # The stripe's rows: the forward pass writes their sums, the backward pass adds its own
-    # and takes the winners (stripe_pass). Each thread works on its own rows throughout,
-    # which the later stages (parallel over rows, in the same halves) then read from the
-    # same core.
-    for j in range(2):
-        # One call site with run-time arguments: two calls with constant ones let LLVM
-        # inline and specialise the row function, and the kernel ran 3x slower.
-        forward, i0, i1, i_keep = stripe_pass(t, j, h)
-        _pass_rows(cq, mul, guide, total, dirs, forward, i0, i1, i_keep, p1, p2, gamma,
-                   lbuf[t], mins[t], hbuf[t], pens[t], scratch[t], disp, disp_r, rbest[t], min_disp)
+    lbuf, hbuf, mins, pens, rbest = borrowed(lbuf), borrowed(hbuf), borrowed(mins), borrowed(pens), borrowed(rbest)
+    forward, i0, i1, second = stripe_pass(t, phase, h)
+    p = 0 if forward else 1
+    _pass_rows(cq, mul, guide, total, dirs, forward, i0, i1, second, p1, p2, gamma,
+               lbuf[p], mins[p], hbuf[t], pens[t], disp, disp_r, rbest[t], min_disp)
 
 
 def sgm_two_pass(cq, mul: int, guide, total, dirs, p1: int, p2: int, gamma: float, min_disp: int,
                  want_right: bool):
-    """Both passes per row stripe (module docstring); returns left and right WTA disparities.
+    """Both passes over the two row stripes in two phases (module docstring); returns left and
+    right WTA disparities.
 
     ``total`` (H, W, D) uint16 receives ``S``. Disparities are float32 (H, W), integer-valued,
     +inf where no hypothesis is inside the image; the right map is (0, 0) when not wanted.
     """
     h, w, nd = cq.shape
     nk = dirs.shape[0]
-    lbuf = np.full((STRIPES, nk, 3, w + 1, nd + 2), INT16_MAX - p1, np.int16)  # (a spare pixel: GAP)
+    # Path state per pass (forward, backward); scratch per stripe.
+    lbuf = np.full((2, nk, 3, w + 1, nd + 2), INT16_MAX - p1, np.int16)  # (a spare pixel: GAP)
+    mins = np.zeros((2, nk, 3, w + GAP), np.int16)
     hbuf = np.full((STRIPES, 2, nd + 2 + GAP), INT16_MAX - p1, np.int16)
-    mins = np.zeros((STRIPES, nk, 3, w + GAP), np.int16)
     pens = np.full((STRIPES, nk + 1, w + GAP), p2, np.int32)
-    scratch = np.empty((STRIPES, w * nd + GAP), np.uint16)
     rbest = np.zeros((STRIPES, w + GAP if want_right else 0), np.uint32)
     disp = np.empty((h, w), np.float32)
-    disp_r = np.empty((h if want_right else 0, w if want_right else 0), np.float32)  # rows set by the backward pass
-    for_chunks(_sgm_two_pass_chunk, STRIPES, cq, mul, guide, total, dirs, p1, p2, gamma, min_disp, lbuf, hbuf, mins,
-               pens, scratch, rbest, disp, disp_r)
+    disp_r = np.empty((h if want_right else 0, w if want_right else 0), np.float32)  # rows set by the second pass
+    for phase in range(2):
+        for_chunks(_sgm_two_pass_chunk, STRIPES, cq, mul, guide, total, dirs, p1, p2, gamma, min_disp, lbuf, hbuf,
+                   mins, pens, rbest, disp, disp_r, phase)
     return disp, disp_r
 
 

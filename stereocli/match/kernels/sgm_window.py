@@ -1,7 +1,8 @@
 """Semi-global matching restricted to a window of hypotheses per pixel (coarse-to-fine search).
 
-The same recursion and the same row stripes (two, one thread each, both passes within a
-stripe and 48 rows beyond it) as :mod:`.sgm` (read its docstring first), with each pixel
+The same recursion and the same two row stripes and phases (the two passes over each half
+shared by two threads, every path through the whole image) as :mod:`.sgm` (read its
+docstring first), with each pixel
 ``p`` searching only ``[lo(p), hi(p))`` (volume indices) instead of the whole range. The
 windows come from a coarse disparity map
 (:func:`stereocli.match.optimize.sgm.search_windows`), in the spirit of Rothermel et al.'s
@@ -155,10 +156,11 @@ def _horizontal_row(cq, mul, pens, total, off_row, lo_row, hi_row, rlo_row, rhi_
 
 
 @njit(cache=True)
-def _direction_row(cq, mul, pens, sums, off_row, lo_row, hi_row, rlo_row, rhi_row, k: int, dy: int, dx: int,
-                   y: int, i: int, i0: int, forward: bool, p1: int, lbuf, lslot, mins, blank, sentinel, shift) -> None:
+def _direction_row(cq, mul, pens, total, off_row, lo_row, hi_row, rlo_row, rhi_row, k: int, dy: int, dx: int,
+                   y: int, i: int, forward: bool, p1: int, lbuf, lslot, mins, blank, sentinel) -> None:
     """Row ``y`` (pass row ``i``) of the path from the rows above (below), direction ``k`` =
-    (``dy``, ``dx``); the sums are added into ``sums`` at the row's offsets minus ``shift``."""
+    (``dy``, ``dx``); the sums are added into ``total`` (the path starts where its predecessor
+    is outside the image)."""
     w = lo_row.shape[0]
     s = 1 if forward else -1
     ring = i % 3
@@ -175,13 +177,13 @@ def _direction_row(cq, mul, pens, sums, off_row, lo_row, hi_row, rlo_row, rhi_ro
         base = np.uint64(off_row[x] - rlo)
         olo = lslot[k, ring, x, 0]
         ohi = lslot[k, ring, x, 1]
-        if ip < i0 or xp < 0 or xp >= w:
-            mins[k, ring, x] = _start(cq, mul, blank, p1, lbuf[k, ring, x], olo, ohi, sums, base,
-                                      base - shift, rlo, rhi, lo, hi, sentinel, keep)
+        if ip < 0 or xp < 0 or xp >= w:
+            mins[k, ring, x] = _start(cq, mul, blank, p1, lbuf[k, ring, x], olo, ohi, total, base, base, rlo, rhi,
+                                      lo, hi, sentinel, keep)
         else:
             pen = pens[k + 1, y, x] if forward else pens[k + 1, yp, xp]
             mins[k, ring, x] = _step(cq, mul, lbuf[k, pr, xp], mins[k, pr, xp], p1, pen,
-                                     lbuf[k, ring, x], olo, ohi, sums, base, base - shift, rlo, rhi, lo, hi,
+                                     lbuf[k, ring, x], olo, ohi, total, base, base, rlo, rhi, lo, hi,
                                      sentinel, keep)
         lslot[k, ring, x, 0] = rlo
         lslot[k, ring, x, 1] = rhi
@@ -247,20 +249,20 @@ def _right_row(total, off_row, lo_row, hi_row, rlo_row, y: int, min_disp: int, d
 
 @njit(cache=True)
 def _pass_rows(cq, nd: int, mul, pens, total, offset, win_lo, win_hi, run_lo, run_hi, dirs, forward: bool, i0: int,
-               i1: int, i_keep: int, p1: int, lbuf, lslot, mins, hbuf, scratch, disp, disp_r, costs,
+               i1: int, second_pass: bool, p1: int, lbuf, lslot, mins, hbuf, disp, disp_r, costs,
                costs_r, second, rbest, min_disp: int) -> None:
     """Rows ``i0 ≤ i < i1`` (in pass order) of one raster pass (:func:`.sgm._pass_rows`, windowed).
 
-    The paths start at row ``i0``; rows before ``i_keep`` only warm up the paths from the rows
-    above (below): no horizontal path, their sums go to ``scratch`` (the longest row's runs,
-    uint16). From ``i_keep`` on, the forward pass writes the sums, the backward pass adds its
-    own and takes the winners.
+    The paths start at the image border; a call that starts further on continues the path
+    state in ``lbuf``/``lslot``/``mins`` that an earlier call of the same pass left there. The
+    first pass over a row writes the sums, the ``second_pass`` adds its own and takes the
+    winners.
 
     ``cq`` holds the matching costs on the runs (ragged, the layout of ``total``), ``nd`` is D.
     ``pens`` (K + 1, H, W) int16: P2 per pixel and direction (:func:`penalty_maps`). ``total``
     is the flat uint16 sum array, ``offset`` (H, W) int64 each pixel's first entry,
     ``win_lo``/``win_hi`` (H, W) int32 its window and ``run_lo``/``run_hi`` the run of
-    hypotheses computed around it (sums are stored for the run). In the backward pass the row's winners are
+    hypotheses computed around it (sums are stored for the run). In the second pass the row's winners are
     taken (left, and right if ``disp_r`` is not empty) with their neighbouring sums in
     ``costs``/``costs_r`` (H, W, 3) float32 (``costs_r`` only if not empty) and, if ``second``
     is not empty, the best sum more than one hypothesis from the left winner. ``lslot`` (K, 3,
@@ -281,9 +283,9 @@ def _pass_rows(cq, nd: int, mul, pens, total, offset, win_lo, win_hi, run_lo, ru
     # functions of their own, which keeps each loop's state in registers (as in .sgm) and the
     # kernel's compile time down.
     h_lo0 = h_hi0 = h_lo1 = h_hi1 = np.int64(0)  # (not a literal 0: one compiled signature)
-    # In the forward pass the horizontal path is the first to reach each pixel: it overwrites
+    # In the first pass the horizontal path is the first to reach each pixel: it overwrites
     # the sums (no separate zeroing pass over them).
-    hkeep = np.uint16(0) if forward else np.uint16(0xFFFF)
+    hkeep = np.uint16(0xFFFF) if second_pass else np.uint16(0)
     for i in range(i0, i1):
         y = i if forward else h - 1 - i
         lo_row = win_lo[y]
@@ -291,17 +293,13 @@ def _pass_rows(cq, nd: int, mul, pens, total, offset, win_lo, win_hi, run_lo, ru
         rlo_row = run_lo[y]
         rhi_row = run_hi[y]
         off_row = offset[y]
-        kept = i >= i_keep
-        sums = total if kept else scratch
-        shift = np.uint64(0) if kept else np.uint64(off_row[0])  # a warm row's sums from scratch[0]
-        if kept:
-            h_lo0, h_hi0, h_lo1, h_hi1 = _horizontal_row(cq, mul, pens, total, off_row, lo_row, hi_row, rlo_row,
-                                                         rhi_row, y, forward, p1, hbuf, blank, sentinel, hkeep,
-                                                         h_lo0, h_hi0, h_lo1, h_hi1)
+        h_lo0, h_hi0, h_lo1, h_hi1 = _horizontal_row(cq, mul, pens, total, off_row, lo_row, hi_row, rlo_row,
+                                                     rhi_row, y, forward, p1, hbuf, blank, sentinel, hkeep,
+                                                     h_lo0, h_hi0, h_lo1, h_hi1)
         for k in range(nk):
-            _direction_row(cq, mul, pens, sums, off_row, lo_row, hi_row, rlo_row, rhi_row, k, dirs[k, 0], dirs[k, 1],
-                           y, i, i0, forward, p1, lbuf, lslot, mins, blank, sentinel, shift)
-        if forward or not kept:
+            _direction_row(cq, mul, pens, total, off_row, lo_row, hi_row, rlo_row, rhi_row, k, dirs[k, 0], dirs[k, 1],
+                           y, i, forward, p1, lbuf, lslot, mins, blank, sentinel)
+        if not second_pass:
             continue
         # The row's sums are complete: winners among hypotheses inside the window whose right
         # pixel x − d lies inside the image, for both views in one pass over each window.
@@ -345,40 +343,38 @@ def penalty_maps(guide, dirs, p1: int, p2: int, gamma: float):
 
 @chunk_kernel
 def _sgm_window_two_pass_chunk(cq, nd: int, mul: int, pens, total, offset, win_lo, win_hi, run_lo, run_hi, dirs,
-                               p1: int, min_disp: int, lbuf, lslot, mins, hbuf, scratch, rbest, disp, disp_r, costs,
-                               costs_r, second, t: int) -> None:
-    """Both passes of row stripe ``t`` (:func:`sgm_window_two_pass`), on that stripe's buffers."""
+                               p1: int, min_disp: int, lbuf, lslot, mins, hbuf, rbest, disp, disp_r, costs,
+                               costs_r, second, phase: int, t: int) -> None:
+    """Stripe ``t``'s part of ``phase`` (:func:`.sgm.stripe_pass`): the path state of the pass it
+    continues (``lbuf``/``lslot``/``mins`` index 0 forward, 1 backward), the stripe's own scratch."""
     h = win_lo.shape[0]
     # Without reference counts, as in .sgm._sgm_two_pass_chunk (:func:`.sgm.borrowed`).
     cq, pens, total, offset, dirs = borrowed(cq), borrowed(pens), borrowed(total), borrowed(offset), borrowed(dirs)
     win_lo, win_hi, run_lo, run_hi = borrowed(win_lo), borrowed(win_hi), borrowed(run_lo), borrowed(run_hi)
     lbuf, lslot, mins, hbuf = borrowed(lbuf), borrowed(lslot), borrowed(mins), borrowed(hbuf)
-    scratch, rbest, disp, disp_r = borrowed(scratch), borrowed(rbest), borrowed(disp), borrowed(disp_r)
+    rbest, disp, disp_r = borrowed(rbest), borrowed(disp), borrowed(disp_r)
     costs, costs_r, second = borrowed(costs), borrowed(costs_r), borrowed(second)
-    for j in range(2):  # one call site with run-time arguments (see .sgm._sgm_two_pass_chunk)
-        forward, i0, i1, i_keep = stripe_pass(t, j, h)
-        _pass_rows(cq, nd, mul, pens, total, offset, win_lo, win_hi, run_lo, run_hi, dirs, forward, i0, i1,
-                   i_keep, p1, lbuf[t], lslot[t], mins[t], hbuf[t], scratch[t], disp, disp_r, costs,
-                   costs_r, second, rbest[t], min_disp)
+    forward, i0, i1, second_pass = stripe_pass(t, phase, h)
+    p = 0 if forward else 1
+    _pass_rows(cq, nd, mul, pens, total, offset, win_lo, win_hi, run_lo, run_hi, dirs, forward, i0, i1,
+               second_pass, p1, lbuf[p], lslot[p], mins[p], hbuf[t], disp, disp_r, costs,
+               costs_r, second, rbest[t], min_disp)
 
 
 def sgm_window_two_pass(cq, nd: int, mul: int, pens, total, offset, win_lo, win_hi, run_lo, run_hi, dirs, p1: int,
                         min_disp: int, want_right: bool, want_second: bool, want_right_costs: bool):
-    """Both passes per row stripe over the windows (the row stripes of :mod:`.sgm`); returns
+    """Both passes over the windows, in the two row stripes and phases of :mod:`.sgm`; returns
     ``(disp, disp_r, costs, costs_r, second)`` (the right-view arrays, ``costs_r`` and
     ``second`` are empty when not wanted)."""
     h, w = win_lo.shape
     nk = dirs.shape[0]
     ns = STRIPES
-    # Each thread's buffers end with spare elements (GAP: no cache line shared between threads).
-    lbuf = np.full((ns, nk, 3, w + 1, nd + 4), INT16_MAX - p1, np.int16)
-    lslot = np.zeros((ns, nk, 3, w + GAP, 2), np.int32)  # every buffer starts as all sentinels
+    # Path state per pass (forward, backward), scratch per stripe; each thread's buffers end
+    # with spare elements (GAP: no cache line shared between threads).
+    lbuf = np.full((2, nk, 3, w + 1, nd + 4), INT16_MAX - p1, np.int16)
+    lslot = np.zeros((2, nk, 3, w + GAP, 2), np.int32)  # every buffer starts as all sentinels
+    mins = np.zeros((2, nk, 3, w + GAP), np.int16)
     hbuf = np.empty((ns, 2, nd + 4 + GAP), np.int16)
-    mins = np.zeros((ns, nk, 3, w + GAP), np.int16)
-    # The most sums one row holds (a warm row's go to scratch).
-    ends = np.append(offset[1:, 0], total.shape[0])
-    longest = max(0, int((ends - offset[:, 0]).max())) if h > 0 and w > 0 else 0
-    scratch = np.empty((ns, longest + GAP), np.uint16)
     rbest = np.zeros((ns, w + GAP if want_right else 0), np.uint32)
     hr = h if want_right else 0
     wr = w if want_right else 0
@@ -387,8 +383,9 @@ def sgm_window_two_pass(cq, nd: int, mul: int, pens, total, offset, win_lo, win_
     costs = np.empty((h, w, 3), np.float32)  # written wherever a winner is (only read there)
     costs_r = np.empty((hr if want_right_costs else 0, wr if want_right_costs else 0, 3), np.float32)
     second = np.zeros((h if want_second else 0, w if want_second else 0), np.float32)
-    for_chunks(_sgm_window_two_pass_chunk, ns, cq, nd, mul, pens, total, offset, win_lo, win_hi, run_lo, run_hi,
-               dirs, p1, min_disp, lbuf, lslot, mins, hbuf, scratch, rbest, disp, disp_r, costs, costs_r, second)
+    for phase in range(2):
+        for_chunks(_sgm_window_two_pass_chunk, ns, cq, nd, mul, pens, total, offset, win_lo, win_hi, run_lo, run_hi,
+                   dirs, p1, min_disp, lbuf, lslot, mins, hbuf, rbest, disp, disp_r, costs, costs_r, second, phase)
     return disp, disp_r, costs, costs_r, second
 
 

@@ -237,10 +237,10 @@ def _small_twin(p: SGMParams, height: int, width: int, ndisp: int) -> SGMParams:
 
 
 def _buffer_bytes(p: SGMParams, width: int, ndisp: int) -> float:
-    """Path-cost row buffers of each row stripe: 3 rows × directions × (D + 2) int16 (plus
-    their minima and penalties) and a scratch row of W·D uint16 sums for the warm-up rows."""
+    """Path-cost row buffers of each pass and row stripe: 3 rows × directions × (D + 2) int16
+    (plus their minima and penalties)."""
     nk = len(ks.DOWN_DIRECTIONS[p.paths])
-    return ks.STRIPES * (3 * width * nk * (ndisp + 2) * 2 + 4 * width * nk * 3 + width * ndisp * 2)
+    return ks.STRIPES * (3 * width * nk * (ndisp + 2) * 2 + 4 * width * nk * 3)
 
 
 def _searches_coarse_to_fine(p: SGMParams) -> bool:
