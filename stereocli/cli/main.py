@@ -83,7 +83,8 @@ def cli(ctx: click.Context, verbose: int, quiet: int) -> None:
 
 #: Said on stderr when kernels compile (the numbers are the README's "Start-up and first run").
 COMPILE_NOTICE = ("stereocli: compiling the numba kernels for first use (after installing, or another preset or "
-                  "image type): about 13 s on two cores, once; later runs load them from the cache")
+                  "image type): about 13 s on two cores for the default preset (20 s for accurate), once; later runs "
+                  "load them from the cache")
 
 
 def _compile_notice(ctx: click.Context) -> None:
