@@ -61,12 +61,12 @@ def keep_freed_memory() -> bool:
 #: set wins). Between two parallel regions GNU OpenMP's idle threads spin for milliseconds by
 #: default (``GOMP_SPINCOUNT`` 300000); with the other core busy (another job, ``make -j``) a
 #: spinning thread holds the core the working one needs, and the default batch over MiddEval3-Q
-#: took 1.5-1.7x its one-thread time (2.8x on a busier machine). Idle threads now spin 10000
-#: rounds (a few microseconds, enough for the next region of the same pair), then sleep: the
-#: batch takes 1.0x its one-thread time under load and the same time as before on an idle
-#: machine; sleeping at once (``GOMP_SPINCOUNT=0``) costs 3-8 % on an idle machine, where every
-#: region then wakes a sleeping thread (``benchmarks/shared_machine.py``). Other OpenMP
-#: runtimes read ``OMP_WAIT_POLICY`` only.
+#: took 1.5-1.7x its one-thread time (2.8x on a busier machine). With these settings idle
+#: threads spin 10000 rounds (a few microseconds, enough for the next region of the same pair),
+#: then sleep: the batch takes 1.0x its one-thread time under load and as long as with the
+#: default spinning on an idle machine; sleeping at once (``GOMP_SPINCOUNT=0``) costs 3-8 % on
+#: an idle machine, where every region then wakes a sleeping thread
+#: (``benchmarks/shared_machine.py``). Other OpenMP runtimes read ``OMP_WAIT_POLICY`` only.
 KERNEL_THREAD_ENV = {"OMP_WAIT_POLICY": "passive", "GOMP_SPINCOUNT": "10000"}
 
 

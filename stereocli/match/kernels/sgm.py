@@ -224,10 +224,9 @@ def _direction_row(cf, mul, lf, tf, mins, pens, k: int, ring: int, ip: int, pr: 
     for x in range(w):
         xp = x - shift
         pix = (row0 + np.uint64(x)) * und
-        spix = pix
         cur = cur_row + np.uint64(x) * lrow
         if ip < 0 or xp < 0 or xp >= w:
-            mins[k, ring, x] = _start(cf, pix, und, mul, lf, cur, tf, spix, True)
+            mins[k, ring, x] = _start(cf, pix, und, mul, lf, cur, tf, pix, True)
         else:
             # :func:`_step` written out: through the inlined call this loop ran 25-30 % slower.
             pm = mins[k, pr, xp]
@@ -239,7 +238,7 @@ def _direction_row(cf, mul, lf, tf, mins, pens, k: int, ring: int, ip: int, pr: 
                 b = np.int16(min(lf[po + d], lf[po + d + two]) + pp1)
                 v = np.int16(np.int16(min(min(a, b), jump) - pm) + np.int16(np.int16(cf[pix + d]) * mul16))
                 lf[cur + d + one] = v
-                tf[spix + d] = np.uint16(tf[spix + d] + np.uint16(v))
+                tf[pix + d] = np.uint16(tf[pix + d] + np.uint16(v))
                 m = min(m, v)
             mins[k, ring, x] = m
 
