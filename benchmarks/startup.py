@@ -8,7 +8,11 @@ the PFM (little endian, bottom row first). Cases:
 * ``pair``: one 640×480 pair (the centre of MiddEval3-Q Adirondack, 64 disparities);
 * ``folder``: the 15 MiddEval3-Q scenes (ranges from each ``calib.txt``) in one process.
 
-The two processes take turns (A, B, A, B, ...) for ``--repeat`` rounds with warm numba caches
+stereocli runs with its kernels compiled ahead of time (``pip install .``; in a checkout,
+``python -m stereocli.match.kernels.aot``) and, as a third process, without them
+(``STEREOCLI_AOT=0``: every kernel from numba's cache).
+
+The processes take turns (A, B, C, A, B, C, ...) for ``--repeat`` rounds with warm numba caches
 (one untimed run of each first); each keeps its best and median wall time, and the ratio is
 stereocli's over OpenCV's.
 
@@ -125,27 +129,32 @@ def wall(argv: list[str], env: dict | None = None) -> tuple[float, str]:
     return seconds, done.stderr
 
 
-def in_turns(runs: dict[str, list[str]], repeat: int) -> dict[str, list[float]]:
-    for argv in runs.values():  # warm-up: caches, page cache
-        wall(argv)
+#: Environment of stereocli's JIT-only process: the kernels compiled ahead of time left unused.
+JIT_ONLY = {"STEREOCLI_AOT": "0"}
+
+
+def in_turns(runs: dict[str, tuple[list[str], dict | None]], repeat: int) -> dict[str, list[float]]:
+    for argv, env in runs.values():  # warm-up: caches, page cache
+        wall(argv, env)
     times = {name: [] for name in runs}
     for _ in range(repeat):
-        for name, argv in runs.items():
-            times[name].append(wall(argv)[0])
+        for name, (argv, env) in runs.items():
+            times[name].append(wall(argv, env)[0])
     return times
 
 
 def first_run(root: Path, left: Path, right: Path) -> None:
-    cache = Path(tempfile.mkdtemp(prefix="numba-cache-", dir=root))
-    env = dict(os.environ, NUMBA_CACHE_DIR=str(cache))
     argv = stereocli_command() + ["match", str(left), str(right), "-o", str(root / "first"), "--ndisp", "64",
                                   "--overwrite"]
-    cold, err = wall(argv, env)
-    warm, _ = wall(argv, env)
-    notice = [line for line in err.splitlines() if "compil" in line.lower()]
-    print(f"\nfirst run (empty numba cache): {cold:.1f} s; the next run {warm:.2f} s")
-    for line in notice:
-        print(f"  stderr: {line}")
+    for label, extra in (("", {}), (" without the ahead-of-time kernels (STEREOCLI_AOT=0)", JIT_ONLY)):
+        cache = Path(tempfile.mkdtemp(prefix="numba-cache-", dir=root))
+        env = dict(os.environ, NUMBA_CACHE_DIR=str(cache), **extra)
+        cold, err = wall(argv, env)
+        warm, _ = wall(argv, env)
+        notice = [line for line in err.splitlines() if "compil" in line.lower()]
+        print(f"\nfirst run{label} (empty numba cache): {cold:.1f} s; the next run {warm:.2f} s")
+        for line in notice:
+            print(f"  stderr: {line}")
 
 
 def main() -> None:
@@ -164,10 +173,11 @@ def main() -> None:
         wanted = [c.strip() for c in args.cases.split(",") if c.strip()]
         print(f"{'case':8} {'process':10} {'best s':>8} {'median s':>9} {'× OpenCV (best)':>16} {'(median)':>9}")
         for case, (cli, cv) in cases(root, wanted).items():
-            t = in_turns({"stereocli": cli, "opencv": cv}, args.repeat)
+            t = in_turns({"stereocli": (cli, None), "opencv": (cv, None),
+                          "JIT only": (cli, dict(os.environ, **JIT_ONLY))}, args.repeat)
             best = {k: min(v) for k, v in t.items()}
             med = {k: statistics.median(v) for k, v in t.items()}
-            for name in ("opencv", "stereocli"):
+            for name in ("opencv", "stereocli", "JIT only"):
                 ratio = "" if name == "opencv" else f"{best[name] / best['opencv']:16.2f} {med[name] / med['opencv']:9.2f}"
                 print(f"{case:8} {name:10} {best[name]:8.3f} {med[name]:9.3f} {ratio}")
         if args.first_run:

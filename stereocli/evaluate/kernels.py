@@ -5,7 +5,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, prange
+
+from ..match.kernels import njit, prange
 
 
 @njit(cache=True, parallel=True)

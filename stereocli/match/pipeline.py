@@ -503,8 +503,4 @@ def current_config() -> PipelineConfig | None:
 def _set_threads(threads: int) -> None:
     from .kernels import set_threads
 
-    set_threads(threads)
-    if threads > 0:
-        import numba
-
-        numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+    set_threads(threads)  # also numba's, for its prange kernels, once numba has started

@@ -1,25 +1,20 @@
-"""numba kernels used by the matching stages (each with a pure-numpy reference in the tests)."""
+"""numba kernels used by the matching stages (each with a pure-numpy reference in the tests),
+and the threads that run them.
 
+Kernel modules take their decorators from here (:mod:`.compiling`: numba, started on first use).
+"""
+
+from __future__ import annotations
 
 import itertools
 import os
+import sys
 import threading
-import warnings
 
-# The expected note of numba's parallel pipeline on a :func:`chunk_kernel` (it has no prange).
-warnings.filterwarnings("ignore", message="(?s).*no transformation for parallel execution was possible")
+from .compiling import LazyKernel, chunk_kernel, intrinsic, njit, numba_started, prange, prange_only, set_numba_threads
 
-
-def prange_only() -> dict:
-    """``parallel=`` option of a kernel whose only parallel loops are its ``prange`` loops.
-
-    With ``parallel=True`` numba also turns every array allocation or expression in the kernel
-    (``np.full``, ``np.zeros``, copies, sums) into a parallel loop of its own: each one is
-    compiled separately (about a quarter of a second of the first run each) and launched on the
-    threads for microseconds of work. (A fresh dict per call: numba consumes it.)
-    """
-    return {"comprehension": False, "reduction": False, "inplace_binop": False, "setitem": False, "numpy": False,
-            "stencil": False, "fusion": False, "prange": True}
+__all__ = ["chunk_kernel", "for_chunks", "for_rows", "intrinsic", "kernel_threads", "njit", "prange", "prange_only",
+           "set_threads"]
 
 
 # --- kernel threads -------------------------------------------------------------------------
@@ -29,56 +24,36 @@ def prange_only() -> dict:
 # parallel compiler takes about three times as long to compile a kernel (the first run after
 # installing), and its thread team spins between regions on a shared machine.
 
-def chunk_kernel(func):
-    """``@njit`` for the serial, ``nogil`` kernel of one chunk (:func:`for_chunks`), cached.
-
-    Compiled as numba compiles the body of a ``prange`` loop, to run as fast:
-
-    * by numba's parallel pipeline although it holds no ``prange``: its simplification passes
-      drop the reference counting of the arrays that inlined helpers (``inline="always"``)
-      pass around (without them the geodesic vote's chunk ran 10x slower; numba's note that
-      nothing could be parallelised is expected and filtered);
-    * with ``error_model="numpy"``: float division by zero gives inf or NaN rather than
-      raising, so the division needs no test and its loop can be vectorised;
-    * with ``noalias``: the kernel's array arguments never overlap (each output is allocated
-      by its wrapper), so LLVM may vectorise loops that read one and write another (the LR
-      check ran 6x slower without). numba accepts the flag from ``prange`` lowering only; the
-      decorator option is added to its CPU target options here, and left out if that fails.
-    """
-    from numba import njit
-
-    flags = dict(cache=True, nogil=True, error_model="numpy", parallel=prange_only())
-    if _allow_noalias():
-        flags["noalias"] = True
-    return njit(**flags)(func)
-
-
-def _allow_noalias() -> bool:
-    try:
-        from numba.core import cpu, options
-
-        if not hasattr(cpu.CPUTargetOptions, "noalias"):
-            cpu.CPUTargetOptions.noalias = options.TargetOptions.Mapping("noalias")
-        return True
-    except (ImportError, AttributeError):  # another numba: the kernels run, only slower
-        return False
-
-
 _threads = [0]  # 0: one per core
 _pool: list = [None, 0, 0]  # (executor, its size, the process it belongs to: a forked child makes its own)
 
 
 def set_threads(threads: int) -> None:
-    """Threads of :func:`for_chunks` (0: one per core, ``NUMBA_NUM_THREADS``)."""
+    """Threads of :func:`for_chunks` and of numba's ``prange`` kernels (0: one per core,
+    ``NUMBA_NUM_THREADS``); numba's count is set in the calling thread now if numba has started,
+    else when it starts."""
     _threads[0] = max(0, int(threads))
+    set_numba_threads(_threads[0])
 
 
 def kernel_threads() -> int:
-    """The number of threads :func:`for_chunks` uses."""
-    import numba
-
-    cap = numba.config.NUMBA_NUM_THREADS
+    """The number of threads :func:`for_chunks` uses (at most numba's ``NUMBA_NUM_THREADS``)."""
+    cap = max_threads()
     return min(_threads[0], cap) if _threads[0] > 0 else cap
+
+
+def max_threads() -> int:
+    """numba's ``NUMBA_NUM_THREADS`` (the environment variable, else the cores this process may
+    use), read without importing numba."""
+    if numba_started():
+        return sys.modules["numba"].config.NUMBA_NUM_THREADS
+    value = os.environ.get("NUMBA_NUM_THREADS", "")
+    if value.strip().isdigit() and int(value) > 0:
+        return int(value)
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:
+        return max(1, os.cpu_count() or 1)
 
 
 def for_chunks(kernel, n_chunks: int, *args) -> None:
@@ -99,6 +74,15 @@ def for_rows(kernel, n_rows: int, *args) -> None:
 
 
 def _run(kernel, calls: list[tuple]) -> None:
+    from .aot import find
+
+    if not calls:
+        return
+    compiled = find(kernel, calls[0])  # the same kernel compiled ahead of time, if built
+    if compiled is not None:
+        kernel = compiled
+    elif isinstance(kernel, LazyKernel):
+        kernel = kernel.dispatcher()  # numba starts in this thread, not in the pool's
     threads = kernel_threads()
     helpers = min(threads, len(calls)) - 1  # the calling thread works too
     if helpers <= 0:

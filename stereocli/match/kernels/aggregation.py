@@ -8,9 +8,9 @@ is outside the image hold ``cost_max``). Small pure-numpy references live in
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
-from numba import njit, prange
+
+from . import njit, prange
 
 
 @njit(cache=True, inline="always")
@@ -454,6 +454,8 @@ def box_filter_volume(cost: np.ndarray, radius_y: int, radius_x: int) -> np.ndar
     running-sum box filter treats the D slices as channels (at most 128 per call), summing
     in double precision, then each window sum is divided by its pixel count.
     """
+    import cv2  # here, not at the top: the kernels compile ahead of time without OpenCV (setup.py)
+
     cost = np.ascontiguousarray(cost, dtype=np.float32)
     h, w, nd = cost.shape
     ksize = (2 * radius_x + 1, 2 * radius_y + 1)

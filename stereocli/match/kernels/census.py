@@ -7,9 +7,8 @@ right pixel is outside the image get ``cost_max``.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
 
-from . import chunk_kernel, for_rows
+from . import chunk_kernel, for_rows, njit
 
 
 @chunk_kernel

@@ -15,7 +15,7 @@ Tests compare every kernel with a tiny pure-numpy reference (``tests/test_costs.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, prange
+from . import njit, prange
 
 from .census import _popcount64
 

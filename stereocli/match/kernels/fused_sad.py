@@ -31,9 +31,8 @@ matching phase read.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
 
-from . import chunk_kernel, for_chunks, for_rows
+from . import chunk_kernel, for_chunks, for_rows, njit
 from .winners import _subpixel_offset
 
 INF = np.float32(np.inf)

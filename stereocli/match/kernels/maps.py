@@ -3,9 +3,8 @@
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
 
-from . import chunk_kernel, for_rows
+from . import chunk_kernel, for_rows, njit
 
 INF = np.float32(np.inf)
 

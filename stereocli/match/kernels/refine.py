@@ -8,9 +8,8 @@ Cost volumes may be float32 or uint16 (SGM sums); values are read as float64.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
 
-from . import chunk_kernel, for_chunks, for_rows
+from . import chunk_kernel, for_chunks, for_rows, njit
 from .aggregation import channel_planes
 
 INF = np.float32(np.inf)

@@ -4,9 +4,8 @@ plane fitting (RANSAC and histogram voting) and locally consistent voting (Matto
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, prange
 
-from . import chunk_kernel, for_chunks, for_rows
+from . import chunk_kernel, for_chunks, for_rows, njit, prange
 
 INF = np.float32(np.inf)
 
@@ -480,11 +479,12 @@ def _line_centre_mask_chunk(bins, todo, band: int, min_change: int, vertical: bo
                         low[x] = min(low[x], v if v >= 0 else none)
                 else:
                     src = bins[y]
-                    # Unsigned indices: no negative-index fix-up, so the loop vectorises.
-                    for x in range(np.uint64(max(0, -t)), np.uint64(min(w, w - t))):
-                        v = src[x + np.uint64(t + w) - np.uint64(w)]
-                        high[x] = max(high[x], v)
-                        low[x] = min(low[x], v if v >= 0 else none)
+                    # Unsigned indices: no negative-index fix-up, so the loop vectorises. (A name
+                    # of its own: numba types one name once, and int64 with uint64 is float64.)
+                    for ux in range(np.uint64(max(0, -t)), np.uint64(min(w, w - t))):
+                        v = src[ux + np.uint64(t + w) - np.uint64(w)]
+                        high[ux] = max(high[ux], v)
+                        low[ux] = min(low[ux], v if v >= 0 else none)
         # Branch-free per pixel (bitwise on booleans), so the loop vectorises.
         row = bins[y]
         out = keep[y]

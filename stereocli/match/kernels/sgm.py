@@ -38,11 +38,7 @@ Layout and numerics (see ``tests/test_kernels_sgm.py`` for the pure-numpy refere
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, types
-from numba.core import cgutils
-from numba.extending import intrinsic
-
-from . import chunk_kernel, for_chunks, for_rows
+from . import chunk_kernel, for_chunks, for_rows, intrinsic, njit
 
 INF = np.float32(np.inf)
 INT16_MAX = 32767
@@ -71,6 +67,9 @@ def borrowed(typingctx, arr):
     row) then do no atomic increments and decrements, as in the body of a ``prange`` loop,
     whose arrays have none either. (With them the SGM passes took 1.3-1.5x as long.) The
     caller keeps ``arr`` alive for as long as the result is used."""
+    from numba import types
+    from numba.core import cgutils
+
     if not isinstance(arr, types.Array):
         return None
 

@@ -12,9 +12,8 @@ convention), so a left pixel ``x`` with disparity ``d`` matches column
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, prange
 
-from . import prange_only
+from . import njit, prange, prange_only
 from .census import _popcount64
 
 

@@ -9,7 +9,7 @@ Disparity maps are (H, W) float32 px, left-referenced, +inf = outlier (unreliabl
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, prange
+from . import njit, prange
 
 from .maps import disparity_bins_serial
 

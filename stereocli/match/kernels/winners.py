@@ -8,9 +8,8 @@ Cost volume layout: ``cost[y, x, k]`` is the cost of left pixel (x, y) against r
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
 
-from . import chunk_kernel, for_rows
+from . import chunk_kernel, for_rows, njit
 
 INF = np.float32(np.inf)
 

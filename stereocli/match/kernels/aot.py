@@ -1,0 +1,300 @@
+"""The default path's chunk kernels compiled ahead of time (``numba.pycc``), so that a process
+that matches with them loads machine code like any extension module instead of starting numba's
+JIT runtime and loading each kernel from its cache (about 0.4 s of every ``stereocli`` process),
+and a first run after installing compiles nothing on that path.
+
+``pip install .`` builds them into the installed package (``setup.py``; a failure there only
+leaves them out), ``python -m stereocli.match.kernels.aot`` into the source tree (for a
+checkout). :func:`find` hands :func:`stereocli.match.kernels._run` the compiled function for a
+kernel and the types of its arguments, or None: then the kernel runs from numba's JIT as
+before. The results are the same bit for bit (``tests/test_aot.py``).
+
+A built folder holds one extension module per kernel and ``manifest.json``; it is used only if
+the manifest matches this process: the same kernel sources (a hash of the ``kernels`` package's
+files, so an edited kernel never runs stale), the same CPU (the modules are compiled for the
+host CPU's instruction set: AVX-512 code would crash an older CPU) and the same NumPy major
+version. ``STEREOCLI_AOT=0`` turns them off.
+
+The kernels and argument types compiled are those of a default run, listed in
+:data:`SIGNATURES_FILE` (``tests/test_aot.py`` checks that a default run calls no others).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib
+import importlib.util
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+KERNELS_DIR = Path(__file__).resolve().parent
+#: Where ``pip install .`` and ``python -m stereocli.match.kernels.aot`` put the modules.
+BUILD_DIR = KERNELS_DIR / "_aot"
+#: One line per compiled kernel: ``module.kernel<TAB>type, type, ...`` (numba's type names).
+SIGNATURES_FILE = KERNELS_DIR / "aot_signatures.txt"
+MANIFEST = "manifest.json"
+#: Package of the built modules (``_aot`` is a plain folder: found by path, never imported by name).
+MODULE_PREFIX = "stereocli_aot_"
+
+
+def read_signatures(path: Path = SIGNATURES_FILE) -> dict[str, list[tuple[str, ...]]]:
+    """``{"module.kernel": [argument type names, ...]}`` of :data:`SIGNATURES_FILE`."""
+    table: dict[str, list[tuple[str, ...]]] = {}
+    for line in path.read_text().splitlines():
+        if line.strip() and not line.startswith("#"):
+            name, types = line.split("\t")
+            table.setdefault(name, []).append(tuple(_split_types(types)))
+    return table
+
+
+def _split_types(text: str) -> list[str]:
+    """``"array(float32, 2d, C), int64"`` → ``["array(float32, 2d, C)", "int64"]``."""
+    parts, depth, start = [], 0, 0
+    for i, char in enumerate(text):
+        depth += {"(": 1, ")": -1}.get(char, 0)
+        if char == "," and depth == 0:
+            parts.append(text[start:i].strip())
+            start = i + 1
+    parts.append(text[start:].strip())
+    return parts
+
+
+def type_name(value) -> str | None:
+    """numba's name for the type of a kernel argument (``numba.typeof(value)``) without importing
+    numba; None for a value no compiled kernel takes (read-only or unaligned arrays, others)."""
+    if isinstance(value, np.ndarray):
+        if not (value.flags.writeable and value.flags.aligned):
+            return None
+        layout = "C" if value.flags.c_contiguous else "F" if value.flags.f_contiguous else "A"
+        dtype = "bool" if value.dtype == np.bool_ else value.dtype.name
+        return f"array({dtype}, {value.ndim}d, {layout})"
+    if isinstance(value, (bool, np.bool_)):
+        return "bool"
+    if isinstance(value, int):
+        return "int64"
+    if isinstance(value, float):
+        return "float64"
+    if isinstance(value, np.generic):
+        return value.dtype.name
+    return None
+
+
+def kernel_sources_hash() -> str:
+    """Hash of the ``kernels`` package's Python files (every kernel and helper they inline)."""
+    digest = hashlib.sha256()
+    for path in sorted(KERNELS_DIR.glob("*.py")):
+        digest.update(path.name.encode() + b"\0" + path.read_bytes())
+    return digest.hexdigest()[:16]
+
+
+def cpu_fingerprint() -> str:
+    """What identifies the instruction set the modules were compiled for: the CPU model and
+    feature flags from ``/proc/cpuinfo``, or LLVM's host CPU name and features elsewhere."""
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+        lines = text.split("\n\n")[0].splitlines()
+        wanted = [line for line in lines if line.split(":")[0].strip() in ("vendor_id", "model name", "flags")]
+        if wanted:
+            return hashlib.sha256("\n".join(wanted).encode()).hexdigest()[:16]
+    except OSError:
+        pass
+    import llvmlite.binding as llvm
+
+    llvm.initialize_native_target()
+    description = llvm.get_host_cpu_name() + llvm.get_host_cpu_features().flatten()
+    return hashlib.sha256(description.encode()).hexdigest()[:16]
+
+
+# --- using a built folder -----------------------------------------------------------------------
+
+_table: list = [None]  # {(kernel function, argument type names): compiled function}, once per process
+
+
+def find(kernel, args: tuple):
+    """The compiled function for ``kernel`` (a chunk kernel's dispatcher) called with ``args``,
+    or None (no usable built folder, or a kernel or signature it does not hold)."""
+    table = _table[0]
+    if table is None:
+        table = _table[0] = _load_table()
+    if not table:
+        return None
+    entry = table.get(getattr(kernel, "py_func", None))
+    if entry is None:
+        return None
+    return entry.get(tuple(type_name(a) for a in args))
+
+
+def _load_table() -> dict:
+    """``{python function: {argument types: compiled function}}`` of the built folder, if usable."""
+    if os.environ.get("STEREOCLI_AOT", "1") == "0":
+        return {}
+    folder = Path(os.environ.get("STEREOCLI_AOT_DIR") or BUILD_DIR)
+    manifest = read_manifest(folder)
+    if manifest is None or manifest != expected_manifest(manifest.get("kernels", {})):
+        return {}
+    extensions: dict = {}
+    table: dict = {}
+    for kernel, entry in manifest["kernels"].items():
+        name = entry["module"]
+        if name not in extensions:
+            extensions[name] = _import_extension(folder, name)
+        if extensions[name] is None:
+            return {}
+        table[_python_function(kernel)] = {tuple(types): getattr(extensions[name], export_name(kernel, i))
+                                           for i, types in enumerate(entry["signatures"])}
+    return table
+
+
+def read_manifest(folder: Path) -> dict | None:
+    try:
+        return json.loads((folder / MANIFEST).read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def expected_manifest(kernels: dict) -> dict:
+    """The manifest a folder built by this process would have, for ``kernels``."""
+    return {"sources": kernel_sources_hash(), "cpu": cpu_fingerprint(),
+            "numpy": np.__version__.split(".")[0], "python": "%d.%d" % sys.version_info[:2],
+            "kernels": kernels}
+
+
+def _import_extension(folder: Path, name: str):
+    for suffix in importlib.machinery.EXTENSION_SUFFIXES:
+        path = folder / (name + suffix)
+        if path.is_file():
+            spec = importlib.util.spec_from_file_location(name, path)
+            extension = importlib.util.module_from_spec(spec)
+            spec.loader.exec_module(extension)
+            return extension
+    return None
+
+
+# --- building -----------------------------------------------------------------------------------
+
+def build(folder: Path = BUILD_DIR, jobs: int = 0, log=print, only: list[str] | None = None) -> float:
+    """Compile every kernel of :data:`SIGNATURES_FILE` (or those named in ``only``) into
+    ``folder``, one extension module per kernel, in ``jobs`` processes (0: one per core), then
+    write the manifest; returns the seconds. Raises on any failure, leaving no manifest (so the
+    folder is not used).
+
+    One module per kernel because pycc's modules of several kernels were not always correct
+    (``_fill_background_rows`` beside ``_hamming_rows`` wrote nothing, with the same machine
+    code); numba's C runtime, which each module links, is compiled once per process."""
+    from concurrent.futures import ProcessPoolExecutor
+    import multiprocessing
+
+    started = time.perf_counter()
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / MANIFEST).unlink(missing_ok=True)
+    kernels = read_signatures()
+    if only is not None:
+        kernels = {kernel: kernels[kernel] for kernel in only}
+    jobs = max(1, min(jobs or os.cpu_count() or 1, len(kernels)))
+    # Largest first (argument count: a rough measure), so that the last to finish are small.
+    order = sorted(kernels, key=lambda k: (-len(kernels[k][0]), k))
+    work = [(str(folder), MODULE_PREFIX + export_name(k, 0)[:-2], {k: kernels[k]}) for k in order]
+    context = multiprocessing.get_context("spawn")  # a clean numba in each worker
+    with ProcessPoolExecutor(max_workers=jobs, mp_context=context) as pool:
+        for (_, name, _), seconds in zip(work, pool.map(_build_module, work)):
+            log(f"  {name}: {seconds:.1f} s")
+    manifest = expected_manifest({kernel: {"module": name, "signatures": [list(s) for s in group[kernel]]}
+                                  for _, name, group in work for kernel in group})
+    (folder / (MANIFEST + ".tmp")).write_text(json.dumps(manifest, indent=1, sort_keys=True) + "\n")
+    os.replace(folder / (MANIFEST + ".tmp"), folder / MANIFEST)
+    return time.perf_counter() - started
+
+
+_runtime_objects: dict = {}  # numba's C runtime objects, compiled once per build process
+
+
+def _build_module(job: tuple[str, str, dict[str, list[tuple[str, ...]]]]) -> float:
+    """Compile kernels into one extension module (in a worker process); export
+    ``<kernel name>_<i>`` for the kernel's i-th signature."""
+    folder, name, kernels = job
+    started = time.perf_counter()
+    from numba.core import types
+    from numba.core.compiler import Flags
+    from numba.core.cpu import ParallelOptions
+    import numba.pycc.compiler as pycc_compiler
+    from numba.pycc import CC
+
+    from .compiling import _allow_noalias, prange_only, start_numba
+
+    start_numba()  # the kernels' helpers become numba's dispatchers
+    noalias = _allow_noalias()
+
+    class ChunkKernelFlags(Flags):
+        """What :func:`chunk_kernel` asks of numba's JIT, and an entry point that releases the
+        GIL (pycc's hold it: the pool's threads would take turns)."""
+
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            self.release_gil = True
+            self.error_model = "numpy"
+            self.noalias = noalias
+            self.auto_parallel = ParallelOptions(prange_only())
+
+    pycc_compiler.Flags = ChunkKernelFlags
+    namespace = {name: getattr(types, name) for name in ("float32", "float64", "int8", "int16", "int32", "int64",
+                                                         "uint8", "uint16", "uint32", "uint64")}
+    namespace.update(bool=types.boolean, C="C", A="A", F="F",
+                     array=lambda dtype, ndim, layout: types.Array(dtype, ndim, layout))
+    class SharedRuntimeCC(CC):
+        """Compiles ``modulemixin.c`` (the module's own entry point) for each module, and the
+        rest of numba's C runtime (the same for every module: 1.2 s) once per process."""
+
+        def _compile_mixins(self, build_dir):
+            sources = [os.path.normpath(source) for source in self._get_mixin_sources()]
+            own, shared = sources[:1], sources[1:]
+            options = dict(include_dirs=self._toolchain.get_python_include_dirs(), macros=self._get_mixin_defines(),
+                           extra_cflags=self._get_extra_cflags())
+            if "objects" not in _runtime_objects:
+                import tempfile
+
+                runtime_dir = tempfile.mkdtemp(prefix="stereocli-aot-runtime-")
+                _runtime_objects["objects"] = self._toolchain.compile_objects(shared, runtime_dir, **options)
+            return self._toolchain.compile_objects(own, build_dir, **options) + _runtime_objects["objects"]
+
+    cc = SharedRuntimeCC(name)
+    cc.output_dir = folder
+    cc.target_cpu = "host"
+    cc.verbose = False
+    for kernel, signatures in kernels.items():
+        for i, names in enumerate(signatures):
+            argument_types = [eval(n.replace("d,", ","), namespace) for n in names]  # noqa: S307 - our own file
+            cc.export(export_name(kernel, i), types.void(*argument_types))(_python_function(kernel))
+    cc.compile()
+    return time.perf_counter() - started
+
+
+def export_name(kernel: str, i: int) -> str:
+    """Name of ``"module.kernel"``'s ``i``-th signature in its extension module."""
+    module, function = kernel.rsplit(".", 1)
+    return f"{module}__{function.lstrip('_')}_{i}"
+
+
+def _python_function(kernel: str):
+    module, function = kernel.rsplit(".", 1)
+    value = getattr(importlib.import_module(f"stereocli.match.kernels.{module}"), function)
+    return getattr(value, "py_func", value)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m stereocli.match.kernels.aot [FOLDER]``: build into FOLDER (default: the package)."""
+    argv = sys.argv[1:] if argv is None else argv
+    folder = Path(argv[0]) if argv else BUILD_DIR
+    print(f"compiling the default path's kernels ahead of time into {folder} ...")
+    seconds = build(folder)
+    print(f"done in {seconds:.0f} s")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
