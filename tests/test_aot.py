@@ -144,15 +144,13 @@ def test_a_build_for_other_sources_another_cpu_or_none_is_not_used(monkeypatch, 
 
 def _complete_build() -> Path | None:
     """A build of every listed kernel for these sources: the installed package's (``pip install
-    .``) or the checkout's (``pip install -e .``); None if neither."""
-    from importlib import metadata
+    .``; the tests import the checkout's sources) or the checkout's (``pip install -e .``);
+    None if neither."""
+    import sysconfig
 
-    candidates = [aot.BUILD_DIR]
-    try:
-        candidates.insert(0, Path(metadata.distribution("stereocli").locate_file("stereocli/match/kernels/_aot")))
-    except metadata.PackageNotFoundError:
-        pass
-    for folder in candidates:
+    installed = {Path(sysconfig.get_paths()[key]) / "stereocli" / "match" / "kernels" / "_aot"
+                 for key in ("platlib", "purelib")}
+    for folder in [*sorted(installed), aot.BUILD_DIR]:
         manifest = aot.read_manifest(folder)
         if manifest and manifest == aot.expected_manifest(manifest["kernels"]) \
                 and set(manifest["kernels"]) == set(aot.read_signatures()):
@@ -173,7 +171,7 @@ def test_the_installed_build_gives_the_same_maps_with_every_kernel(monkeypatch):
 
 
 @pytest.mark.slow
-def test_a_default_match_with_the_build_never_imports_numba(tmp_path):
+def test_default_runs_with_the_build_never_import_numba(tmp_path):
     folder = _complete_build()
     if folder is None:
         pytest.skip("no ahead-of-time build of these sources is installed")
@@ -186,6 +184,12 @@ def test_a_default_match_with_the_build_never_imports_numba(tmp_path):
             "try:\n    main(sys.argv[1:])\nexcept SystemExit as exit:\n    assert exit.code == 0, exit.code\n"
             "print('numba' in sys.modules)")
     argv = [str(tmp_path / "l.png"), str(tmp_path / "r.png"), "--ndisp", "64", "-q", "--overwrite"]
+    # The library calls of the other tests, in a fresh process: numba never starts either.
+    library = ("import sys\nsys.path.insert(0, sys.argv[1])\nimport test_aot\ntest_aot._default_runs()\n"
+               "print('numba' in sys.modules)")
+    done = subprocess.run([sys.executable, "-c", library, str(Path(__file__).parent)], capture_output=True,
+                          text=True, env=dict(os.environ, STEREOCLI_AOT="1", STEREOCLI_AOT_DIR=str(folder)))
+    assert done.returncode == 0 and done.stdout.split()[-1] == "False", done.stderr
     outputs = {}
     for aot_flag in ("1", "0"):
         out = tmp_path / f"out{aot_flag}"

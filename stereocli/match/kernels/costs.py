@@ -15,7 +15,7 @@ Tests compare every kernel with a tiny pure-numpy reference (``tests/test_costs.
 from __future__ import annotations
 
 import numpy as np
-from . import njit, prange
+from . import chunk_kernel, for_rows, njit, prange
 
 from .census import _popcount64
 
@@ -471,16 +471,23 @@ def absdiff_volume(left: np.ndarray, right: np.ndarray, min_disp: int, ndisp: in
     return out
 
 
-@njit(cache=True, parallel=True)
-def mask_invalid_right(cost: np.ndarray, right_valid: np.ndarray, min_disp: int, cost_max: float) -> None:
-    """Set ``cost_max`` wherever the right pixel is outside the right valid mask (in place)."""
-    h, w, nd = cost.shape
-    for y in prange(h):
+@chunk_kernel
+def _mask_invalid_right_rows(cost, right_valid, min_disp: int, cost_max: float, y0: int, y1: int) -> None:
+    """:func:`mask_invalid_right` on rows ``[y0, y1)``."""
+    _, w, nd = cost.shape
+    for y in range(y0, y1):
         for x in range(w):
             for k in range(nd):
                 xr = x - (min_disp + k)
                 if 0 <= xr < w and not right_valid[y, xr]:
                     cost[y, x, k] = cost_max
+
+
+def mask_invalid_right(cost: np.ndarray, right_valid: np.ndarray, min_disp: int, cost_max: float) -> None:
+    """Set ``cost_max`` wherever the right pixel is outside the right valid mask (in place;
+    ``cost`` (H, W, D) float32, uint8 or uint16, ``right_valid`` (H, W) bool)."""
+    for_rows(_mask_invalid_right_rows, cost.shape[0], cost, np.ascontiguousarray(right_valid, dtype=np.bool_),
+             int(min_disp), float(cost_max))
 
 
 @njit(cache=True, parallel=True)
