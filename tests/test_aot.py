@@ -121,7 +121,7 @@ def test_kernels_built_ahead_of_time_give_the_same_maps_as_the_jit(monkeypatch, 
 
 
 @pytest.mark.slow
-def test_a_build_for_other_sources_another_cpu_or_none_is_not_used(monkeypatch, built, tmp_path):
+def test_a_build_for_other_sources_another_cpu_damaged_or_none_is_not_used(monkeypatch, built, tmp_path):
     monkeypatch.setenv("STEREOCLI_AOT_DIR", str(built))
     monkeypatch.delenv("STEREOCLI_AOT", raising=False)
     assert aot._load_table()  # the fixture's build is used as it is
@@ -137,9 +137,35 @@ def test_a_build_for_other_sources_another_cpu_or_none_is_not_used(monkeypatch, 
         assert aot._load_table() == {}, key
     monkeypatch.setenv("STEREOCLI_AOT_DIR", str(tmp_path / "empty"))
     assert aot._load_table() == {}
+    # A damaged build: a module missing, or one that does not load.
+    for damage in ("missing", "garbage"):
+        damaged = tmp_path / damage
+        damaged.mkdir()
+        modules = sorted(built.glob("*.so")) or sorted(built.glob("*.pyd"))
+        for item in built.iterdir():
+            if item != modules[0]:
+                (damaged / item.name).symlink_to(item)
+        if damage == "garbage":
+            (damaged / modules[0].name).write_bytes(b"not a shared library")
+        monkeypatch.setenv("STEREOCLI_AOT_DIR", str(damaged))
+        assert aot._load_table() == {}, damage
     monkeypatch.setenv("STEREOCLI_AOT_DIR", str(built))
     monkeypatch.setenv("STEREOCLI_AOT", "0")
     assert aot._load_table() == {}
+
+
+@pytest.mark.slow
+def test_the_record_says_whether_the_build_is_used_and_why_not(monkeypatch, built, tmp_path):
+    monkeypatch.setenv("STEREOCLI_AOT_DIR", str(built))
+    for flag, expected in (("1", "2 compiled at install; others from numba's JIT"),
+                           ("0", "none compiled at install (STEREOCLI_AOT=0): numba's JIT")):
+        monkeypatch.setenv("STEREOCLI_AOT", flag)
+        monkeypatch.setattr(aot, "_table", [None])
+        assert aot.describe() == expected
+    monkeypatch.setenv("STEREOCLI_AOT", "1")
+    monkeypatch.setenv("STEREOCLI_AOT_DIR", str(tmp_path))
+    monkeypatch.setattr(aot, "_table", [None])
+    assert aot.describe() == f"none compiled at install (no build in {tmp_path}): numba's JIT"
 
 
 def _complete_build() -> Path | None:

@@ -38,6 +38,7 @@ def test_match_writes_outputs_and_run_record(run_cli, tmp_path, small_scenes):
         assert float((folder / "time.txt").read_text()) > 0
         params = json.loads((folder / "params.json").read_text())
         assert params["config"]["cost"]["name"] and params["ndisp"] > 0 and "stage_seconds" in params
+        assert "compiled at install" in params["kernels"]
     record = json.loads((out / "run.json").read_text())
     assert record["summary"] == {"ok": 2, "skipped": 0, "failed": 0}
     assert record["config"]["optimizer"]["name"] and record["versions"]["numpy"]

@@ -51,10 +51,12 @@ class LazyGroup(click.Group):
 def _show_versions(ctx: click.Context, _param: click.Parameter, value: bool) -> None:
     if not value or ctx.resilient_parsing:
         return
+    from ..match.kernels.aot import describe
     from ..runinfo import versions
 
     for name, version in versions().items():
         click.echo(f"{name}: {version}")
+    click.echo(f"kernels: {describe()}")
     ctx.exit(0)
 
 
@@ -82,9 +84,8 @@ def cli(ctx: click.Context, verbose: int, quiet: int) -> None:
 
 
 #: Said on stderr when kernels compile (the numbers are the README's "Start-up and first run").
-COMPILE_NOTICE = ("stereocli: compiling the numba kernels for first use (after installing, or another preset or "
-                  "image type): about 13 s on two cores for the default preset (20 s for accurate), once; later runs "
-                  "load them from the cache")
+COMPILE_NOTICE = ("stereocli: compiling the numba kernels that this preset or image type needs beyond those built "
+                  "at install: about 13 s on two cores for accurate, once; later runs load them from the cache")
 
 
 def _compile_notice(ctx: click.Context) -> None:

@@ -280,8 +280,10 @@ def match_item(item: WorkItem) -> dict:
         details["warnings"] = [*details.get("warnings", []),
                                f"disp0.png: {png16_lost} valid pixels outside [1, 65535] / {opts['png16_scale']:g} px "
                                "written as 0 (invalid); disp0.pfm has them"]
+    from ..match.kernels.aot import describe
+
     params = {"pair": item.name, "inputs": item.inputs, "config": opts["config"], **details,
-              **opts.get("record", {})}
+              "kernels": describe(), **opts.get("record", {})}
     write_text(out["params"], json.dumps(params, indent=2) + "\n")
     write_text(out["time"], f"{seconds:.6f}\n")
     return details

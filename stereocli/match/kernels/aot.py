@@ -23,10 +23,12 @@ from __future__ import annotations
 
 import hashlib
 import importlib
+import importlib.machinery
 import importlib.util
 import json
 import os
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -112,7 +114,8 @@ def cpu_fingerprint() -> str:
 
 # --- using a built folder -----------------------------------------------------------------------
 
-_table: list = [None]  # {(kernel function, argument type names): compiled function}, once per process
+_table: list = [None]  # {python function: {argument type names: compiled function}}, once per process
+_table_lock = threading.Lock()
 
 
 def find(kernel, args: tuple):
@@ -120,8 +123,11 @@ def find(kernel, args: tuple):
     or None (no usable built folder, or a kernel or signature it does not hold)."""
     table = _table[0]
     if table is None:
-        table = _table[0] = _load_table()
-    if not table:
+        with _table_lock:  # threads of a Dask worker may match pairs at once
+            if _table[0] is None:
+                _table[0] = _load_table()
+            table = _table[0]
+    if not table or kernel is None:
         return None
     entry = table.get(getattr(kernel, "py_func", None))
     if entry is None:
@@ -129,25 +135,45 @@ def find(kernel, args: tuple):
     return entry.get(tuple(type_name(a) for a in args))
 
 
+_why_not: list = [""]  # why the build is not used ("" while it is, or before the first lookup)
+
+
 def _load_table() -> dict:
-    """``{python function: {argument types: compiled function}}`` of the built folder, if usable."""
+    """``{python function: {argument types: compiled function}}`` of the built folder, if usable
+    (else ``{}``, with the reason in ``_why_not``)."""
+    table, _why_not[0] = _usable_build()
+    return table
+
+
+def _usable_build() -> tuple[dict, str]:
     if os.environ.get("STEREOCLI_AOT", "1") == "0":
-        return {}
+        return {}, "STEREOCLI_AOT=0"
     folder = Path(os.environ.get("STEREOCLI_AOT_DIR") or BUILD_DIR)
     manifest = read_manifest(folder)
-    if manifest is None or manifest != expected_manifest(manifest.get("kernels", {})):
-        return {}
-    extensions: dict = {}
+    if manifest is None:
+        return {}, f"no build in {folder}"
+    expected = expected_manifest(manifest.get("kernels", {}))
+    for key, what in (("sources", "other kernel sources"), ("cpu", "another CPU"), ("numpy", "another NumPy"),
+                      ("python", "another Python")):
+        if manifest.get(key) != expected[key]:
+            return {}, f"the build in {folder} is for {what}"
     table: dict = {}
-    for kernel, entry in manifest["kernels"].items():
-        name = entry["module"]
-        if name not in extensions:
-            extensions[name] = _import_extension(folder, name)
-        if extensions[name] is None:
-            return {}
-        table[_python_function(kernel)] = {tuple(types): getattr(extensions[name], export_name(kernel, i))
-                                           for i, types in enumerate(entry["signatures"])}
-    return table
+    try:
+        for kernel, entry in manifest["kernels"].items():
+            extension = _import_extension(folder, entry["module"])
+            table[_python_function(kernel)] = {tuple(types): getattr(extension, export_name(kernel, i))
+                                               for i, types in enumerate(entry["signatures"])}
+    except Exception as exc:  # noqa: BLE001 - a damaged build (a module missing or not loading): the JIT's kernels
+        return {}, f"the build in {folder} does not load ({exc})"
+    return table, ""
+
+
+def describe() -> str:
+    """One line on the kernels compiled at install, for records and ``--show-versions``."""
+    find(None, ())  # loads the table once
+    if _table[0]:
+        return f"{len(_table[0])} compiled at install; others from numba's JIT"
+    return f"none compiled at install ({_why_not[0]}): numba's JIT"
 
 
 def read_manifest(folder: Path) -> dict | None:
@@ -165,6 +191,7 @@ def expected_manifest(kernels: dict) -> dict:
 
 
 def _import_extension(folder: Path, name: str):
+    """The extension module ``name`` built in ``folder``; raises if it is missing or does not load."""
     for suffix in importlib.machinery.EXTENSION_SUFFIXES:
         path = folder / (name + suffix)
         if path.is_file():
@@ -172,7 +199,7 @@ def _import_extension(folder: Path, name: str):
             extension = importlib.util.module_from_spec(spec)
             spec.loader.exec_module(extension)
             return extension
-    return None
+    raise ImportError(f"{name} not found in {folder}")
 
 
 # --- building -----------------------------------------------------------------------------------
