@@ -261,3 +261,27 @@ def test_census_transform_bit_strings(window):
                         neighbour = img[min(max(y + dy, 0), h - 1), min(max(x + dx, 0), w - 1)]
                         expected = (expected << 1) | int(neighbour < img[y, x])
             assert int(got[y, x]) == expected
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_nearest_bit_strings_match_a_numpy_reference_ties_included(threads):
+    from stereocli.match.kernels import set_threads
+    from stereocli.match.kernels.census import nearest_bit_strings
+
+    rng = np.random.default_rng(5)
+    queries = rng.integers(0, 256, (37, 32), dtype=np.uint8)
+    candidates = rng.integers(0, 256, (23, 32), dtype=np.uint8)
+    candidates[7] = candidates[3]  # equal distances to two candidates: the lower index wins
+    queries[:5] = candidates[3]  # distance 0
+    queries[5] = candidates[3]
+    queries[5, 0] ^= 1  # distance 1, as to candidate 7
+    bits = np.unpackbits(queries[:, None, :] ^ candidates[None, :, :], axis=2).sum(axis=2)
+    set_threads(threads)
+    try:
+        index, best, second = nearest_bit_strings(queries, candidates)
+    finally:
+        set_threads(0)
+    np.testing.assert_array_equal(index, bits.argmin(axis=1))
+    np.testing.assert_array_equal(best, bits.min(axis=1))
+    np.testing.assert_array_equal(second, np.sort(bits, axis=1)[:, 1])
+    assert index[0] == 3 and best[0] == 0 and second[0] == 0 and index[5] == 3 and best[5] == 1

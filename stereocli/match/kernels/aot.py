@@ -69,21 +69,24 @@ def _split_types(text: str) -> list[str]:
 def type_name(value) -> str | None:
     """numba's name for the type of a kernel argument (``numba.typeof(value)``) without importing
     numba; None for a value no compiled kernel takes (read-only or unaligned arrays, others)."""
-    if isinstance(value, np.ndarray):
-        if not (value.flags.writeable and value.flags.aligned):
+    kind = type(value)
+    if kind is np.ndarray:
+        flags = value.flags
+        if not (flags.writeable and flags.aligned):
             return None
-        layout = "C" if value.flags.c_contiguous else "F" if value.flags.f_contiguous else "A"
-        dtype = "bool" if value.dtype == np.bool_ else value.dtype.name
-        return f"array({dtype}, {value.ndim}d, {layout})"
-    if isinstance(value, (bool, np.bool_)):
-        return "bool"
-    if isinstance(value, int):
-        return "int64"
-    if isinstance(value, float):
-        return "float64"
-    if isinstance(value, np.generic):
-        return value.dtype.name
-    return None
+        layout = "C" if flags.c_contiguous else "F" if flags.f_contiguous else "A"
+        return f"array({_DTYPE_NAMES.get(value.dtype) or _dtype_name(value.dtype)}, {value.ndim}d, {layout})"
+    return _SCALAR_NAMES.get(kind) or (value.dtype.name if isinstance(value, np.generic) else None)
+
+
+#: numba's names of Python scalars and NumPy booleans (other NumPy scalars: their dtype's name).
+_SCALAR_NAMES = {int: "int64", float: "float64", bool: "bool", np.bool_: "bool"}
+_DTYPE_NAMES: dict = {}
+
+
+def _dtype_name(dtype: np.dtype) -> str:
+    name = _DTYPE_NAMES[dtype] = "bool" if dtype == np.bool_ else dtype.name
+    return name
 
 
 def kernel_sources_hash() -> str:

@@ -155,3 +155,41 @@ def hamming_volume(census_left: np.ndarray, census_right: np.ndarray, min_disp: 
     out = np.empty((h, w, ndisp), dtype)
     for_rows(_hamming_rows, h, census_left, census_right, int(min_disp), float(cost_max), out)
     return out
+
+
+# --- nearest bit strings (binary feature descriptors) ----------------------------------------------
+
+@chunk_kernel
+def _nearest_rows(queries, candidates, best_index, best, second, y0: int, y1: int) -> None:
+    """:func:`nearest_bit_strings` for queries ``[y0, y1)`` (``candidates`` transposed: (words, M))."""
+    n_words, n_candidates = candidates.shape  # word k of every candidate in a row: contiguous loads
+    distances = np.empty(n_candidates, np.uint64)
+    for q in range(y0, y1):
+        query = queries[q]
+        distances[:] = 0
+        for k in range(n_words):  # every distance first, in loops over candidates that vectorise
+            word = query[k]
+            row = candidates[k]
+            for c in range(n_candidates):
+                distances[c] += _popcount64(word ^ row[c])
+        first_d, second_d, first_c = np.int64(1 << 62), np.int64(1 << 62), -1
+        for c in range(n_candidates):  # the first of equal distances wins
+            d = np.int64(distances[c])
+            if d < first_d:
+                second_d, first_d, first_c = first_d, d, c
+            elif d < second_d:
+                second_d = d
+        best_index[q], best[q], second[q] = first_c, first_d, second_d
+
+
+def nearest_bit_strings(queries: np.ndarray, candidates: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For each row of ``queries`` (N, B) uint8 (binary descriptors such as ORB's, B a multiple of
+    8), its nearest row of ``candidates`` (M, B) by Hamming distance: ``(index, distance,
+    second distance)``, (N,) int64 each (the second is 2^62 when M < 2; among equal distances the
+    lowest index wins)."""
+    q = np.ascontiguousarray(queries, dtype=np.uint8).view(np.uint64)
+    c = np.ascontiguousarray(np.ascontiguousarray(candidates, dtype=np.uint8).view(np.uint64).T)
+    n = q.shape[0]
+    index, best, second = np.empty(n, np.int64), np.empty(n, np.int64), np.empty(n, np.int64)
+    for_rows(_nearest_rows, n, q, c, index, best, second)
+    return index, best, second
