@@ -131,10 +131,11 @@ class _CompileWatch:
 
 
 def notify_compilation(notice) -> None:
-    """Call ``notice()`` once, when this process next compiles a kernel (a cache miss: the
-    first run after installing, a preset or input type not compiled before), so the command
-    line can say why it is slow; ``None`` stops watching. Needs :func:`prepare_kernels` (or
-    numba already started)."""
+    """Call ``notice()`` when this process next compiles a kernel (a cache miss: the first run
+    after installing, a preset or input type not compiled before), so the command line can say
+    why it is slow, once, or at each compile until ``notice()`` returns something false if it
+    returns True (it waits for a later moment); ``None`` stops watching. Needs
+    :func:`prepare_kernels` (or numba already started)."""
     _CompileWatch.notice = notice
     if notice is not None and "numba.np.arraymath" in sys.modules:
         _watch_compilation()
@@ -147,9 +148,9 @@ def _watch_compilation() -> None:
 
     class FirstCompile(event.Listener):
         def on_start(self, _event) -> None:
-            notice, _CompileWatch.notice = _CompileWatch.notice, None  # once per process
-            if notice is not None:
-                notice()
+            notice, _CompileWatch.notice = _CompileWatch.notice, None  # once per process...
+            if notice is not None and notice() is True:
+                _CompileWatch.notice = notice  # ...unless it asks to be called again
 
         def on_end(self, _event) -> None:
             pass

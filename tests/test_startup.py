@@ -76,6 +76,16 @@ def test_the_compile_notice_comes_once_per_command():
     assert _python(code).stdout.split() == ["NOTICE", "done"]
 
 
+def test_a_notice_that_asks_again_is_called_at_later_compiles_until_it_is_done():
+    # The command line's warm-up waits for a compile during a pair's matching (its config known).
+    code = ("from stereocli.process import prepare_kernels, notify_compilation\nprepare_kernels()\n"
+            "calls = []\n"
+            "def notice():\n    calls.append(1)\n    print('NOTICE', len(calls))\n    return len(calls) < 2\n"
+            "notify_compilation(notice)\n"
+            "from numba import njit\nf = njit(lambda x: x + 1)\nf(1)\nf(1.5)\nf(2j)\nprint('done')")
+    assert _python(code).stdout.split() == ["NOTICE", "1", "NOTICE", "2", "done"]
+
+
 def test_the_compile_notice_says_so_on_stderr_unless_quiet(capsys):
     from types import SimpleNamespace
 

@@ -79,7 +79,7 @@ def cli(ctx: click.Context, verbose: int, quiet: int) -> None:
     prepare_kernels()  # before numba starts: sleeping idle threads, a faster start
     ctx.ensure_object(dict)
     ctx.obj["verbosity"] = ctx.obj.get("verbosity", 0) + verbose - quiet
-    notify_compilation(lambda: (_compile_notice(ctx), _warm_up_first_run()))
+    notify_compilation(_on_first_compile(ctx))
     ctx.call_on_close(lambda: notify_compilation(None))  # for this command only
 
 
@@ -88,20 +88,36 @@ COMPILE_NOTICE = ("stereocli: compiling the numba kernels that this preset or im
                   "at install: about 13 s on two cores for accurate, once; later runs load them from the cache")
 
 
+def _on_first_compile(ctx: click.Context):
+    """What to do when kernels compile: say so once, and warm up the first pair's config (at a
+    compile during its matching: one during a pair's survey comes before it is known)."""
+    said = []
+
+    def on_compile() -> bool:
+        if not said:
+            said.append(True)
+            _compile_notice(ctx)
+        return not _warm_up_first_run()  # True: call again at the next compile
+
+    return on_compile
+
+
 def _compile_notice(ctx: click.Context) -> None:
     """The first kernel of this run has to compile: say so (unless -q)."""
     if ctx.obj.get("verbosity", 0) >= 0:  # -q: errors only
         click.echo(COMPILE_NOTICE, err=True)
 
 
-def _warm_up_first_run() -> None:
+def _warm_up_first_run() -> bool:
     """When a pair is being matched, compile its whole config on every core first (the run
-    then loads its kernels from the cache instead of compiling them one by one)."""
+    then loads its kernels from the cache instead of compiling them one by one); True if it did."""
     pipeline = sys.modules.get("stereocli.match.pipeline")
-    if pipeline is not None and pipeline.current_config() is not None:
-        from ..match.warmup import warm_up_first_run
+    if pipeline is None or pipeline.current_config() is None:
+        return False
+    from ..match.warmup import warm_up_first_run
 
-        warm_up_first_run(pipeline.current_config())
+    warm_up_first_run(pipeline.current_config())
+    return True
 
 
 def main(argv: list[str] | None = None) -> None:
