@@ -1,7 +1,8 @@
-"""Build step of ``pip install``: the default path's numba kernels compiled ahead of time into the
-package (``stereocli/match/kernels/aot.py``), so that a ``stereocli`` process loads them as
-extension modules instead of starting numba's JIT, and the first run compiles nothing on the
-default path. The project's metadata is in ``pyproject.toml``.
+"""Build step of ``pip install``: the numba kernels of the usual presets (default, fast, accurate,
+realtime) compiled ahead of time into the package (``stereocli/match/kernels/aot.py``), so that
+a ``stereocli`` process loads them as extension modules instead of starting numba's JIT, and
+the first run of those presets compiles nothing. The project's metadata is in
+``pyproject.toml``.
 
 The modules are built for this machine's CPU and Python (the wheel is tagged for the platform).
 If the build fails (no C compiler, a numba without ``numba.pycc``), the install goes on without
@@ -36,7 +37,7 @@ class BuildWithKernels(build_py):
         try:
             from stereocli.match.kernels import aot
 
-            print(f"stereocli: compiling the default path's kernels ahead of time into {root / KERNELS / '_aot'} "
+            print(f"stereocli: compiling the usual presets' kernels ahead of time into {root / KERNELS / '_aot'} "
                   "(about 30 s on two cores)", flush=True)
             seconds = aot.build(root / KERNELS / "_aot", log=lambda line: print(line, flush=True))
             print(f"stereocli: kernels compiled in {seconds:.0f} s", flush=True)

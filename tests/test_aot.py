@@ -59,14 +59,22 @@ def _maps(monkeypatch, folder: Path | None) -> tuple[list[np.ndarray], dict]:
     return _default_runs(), used
 
 
+#: The presets whose kernels the build holds.
+BUILT_PRESETS = ("default", "fast", "accurate", "realtime")
+
+
 def _default_runs() -> list[np.ndarray]:
-    """The default preset's maps of :func:`_pairs`, and the disparity range estimated for the
+    """The maps of :func:`_pairs` by each of :data:`BUILT_PRESETS` (the default's on every pair,
+    the others' on the first two and the grey one), and the disparity range estimated for the
     first pair (a coarse match of its own, run when the range is not given)."""
     from stereocli.features.disparity_range import estimate_range
 
-    config = build_config()
     pairs = _pairs()
-    maps = [match_pair(left, right, config, **kwargs).disparity for left, right, kwargs in pairs]
+    maps = []
+    for preset in BUILT_PRESETS:
+        config = build_config([preset])
+        maps += [match_pair(left, right, config, **kwargs).disparity
+                 for left, right, kwargs in (pairs if preset == "default" else pairs[:3])]
     span = estimate_range(pairs[0][0], pairs[0][1])
     return maps + [np.array([span.min_disp, span.ndisp])]
 
@@ -95,7 +103,7 @@ def test_type_names_are_numbas_own():
     assert aot.type_name("text") is None
 
 
-def test_the_listed_signatures_are_those_of_a_default_run(monkeypatch):
+def test_the_listed_signatures_are_those_of_the_built_presets(monkeypatch):
     seen: set = set()
 
     def recorded(kernel, args):
@@ -197,7 +205,7 @@ def test_the_installed_build_gives_the_same_maps_with_every_kernel(monkeypatch):
 
 
 @pytest.mark.slow
-def test_default_runs_with_the_build_never_import_numba(tmp_path):
+def test_runs_of_the_built_presets_never_import_numba(tmp_path):
     folder = _complete_build()
     if folder is None:
         pytest.skip("no ahead-of-time build of these sources is installed")

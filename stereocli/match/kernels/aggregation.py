@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import njit, prange
+from . import chunk_kernel, for_rows, njit, prange
 
 
 @njit(cache=True, inline="always")
@@ -162,24 +162,23 @@ def channel_planes(image: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(np.moveaxis(image, 2, 0), dtype=np.float32)
 
 
-@njit(cache=True, parallel=True)
-def _arms_rows(planes: np.ndarray, tau1: float, tau_step: float, tau2: float, max_len1: int,
-               max_len2: int) -> np.ndarray:
-    # Arm lengths (H, W, 4) of the (C, H, W) image: an arm grows from p to q while
-    # D(p, q) < tau1, D(q_prev, q) < tau_step, and, beyond max_len2 px, D(p, q) < tau2, up to
-    # max_len1 px (D = max over channels of |difference|); the first step is always taken.
-    # All pixels of a row grow their arm one step at a time; every inner loop runs over an
-    # aligned row slice with non-negative indices, so it vectorises.
+@chunk_kernel
+def _arms_rows(planes, tau1: float, tau_step: float, tau2: float, max_len1: int, max_len2: int, arms,
+               y0: int, y1: int) -> None:
+    # Arm lengths (H, W, 4) of the (C, H, W) image, rows [y0, y1) into ``arms``: an arm grows
+    # from p to q while D(p, q) < tau1, D(q_prev, q) < tau_step, and, beyond max_len2 px,
+    # D(p, q) < tau2, up to max_len1 px (D = max over channels of |difference|); the first step
+    # is always taken. All pixels of a row grow their arm one step at a time; every inner loop
+    # runs over an aligned row slice with non-negative indices, so it vectorises.
     nc, h, w = planes.shape
-    arms = np.zeros((h, w, 4), np.int32)
     t1 = np.float32(tau1)
     ts = np.float32(tau_step)
     t2 = np.float32(tau2)
-    for y in prange(h):
-        growing = np.empty(w, np.bool_)
-        length = np.empty(w, np.int32)
-        to_p = np.empty(w, np.float32)
-        to_prev = np.empty(w, np.float32)
+    growing = np.empty(w, np.bool_)  # row buffers, once per chunk of rows
+    length = np.empty(w, np.int32)
+    to_p = np.empty(w, np.float32)
+    to_prev = np.empty(w, np.float32)
+    for y in range(y0, y1):
         for a in range(4):
             dy = ARM_STEPS[a, 0]
             dx = ARM_STEPS[a, 1]
@@ -233,6 +232,14 @@ def _arms_rows(planes: np.ndarray, tau1: float, tau_step: float, tau2: float, ma
                     break
             for x in range(w):
                 arms[y, x, a] = length[x]
+
+
+def _arms(planes: np.ndarray, tau1: float, tau_step: float, tau2: float, max_len1: int, max_len2: int) -> np.ndarray:
+    """Arm lengths (H, W, 4) int32 of the (C, H, W) float32 image (:func:`_arms_rows`)."""
+    planes = np.ascontiguousarray(planes, dtype=np.float32)
+    arms = np.zeros((planes.shape[1], planes.shape[2], 4), np.int32)
+    for_rows(_arms_rows, planes.shape[1], planes, float(tau1), float(tau_step), float(tau2), int(max_len1),
+             int(max_len2), arms)
     return arms
 
 
@@ -247,7 +254,7 @@ def cross_arms_two_threshold(image: np.ndarray, tau1: float, tau2: float, max_le
     D_c = max over channels of the absolute difference. As in :func:`cross_arms`, every arm has
     length ≥ 1 where the image allows. ``image`` (H, W, C) float32.
     """
-    return _arms_rows(channel_planes(image), float(tau1), float(tau1), float(tau2), int(max_len1), int(max_len2))
+    return _arms(channel_planes(image), tau1, tau1, tau2, max_len1, max_len2)
 
 
 def cross_arms(image: np.ndarray, tau: float, max_len: int) -> np.ndarray:
@@ -257,7 +264,7 @@ def cross_arms(image: np.ndarray, tau: float, max_len: int) -> np.ndarray:
     is at most ``max_len`` pixels (Zhang, Lu, Lafruit 2009, eq. 2); every arm has length ≥ 1
     where the image allows, so the support is never a single pixel. ``image`` (H, W, C) float32.
     """
-    return _arms_rows(channel_planes(image), float(tau), np.inf, np.inf, int(max_len), int(max_len))
+    return _arms(channel_planes(image), tau, np.inf, np.inf, max_len, max_len)
 
 
 @njit(cache=True, parallel=True)

@@ -1,4 +1,4 @@
-"""The default path's chunk kernels compiled ahead of time (``numba.pycc``), so that a process
+"""The chunk kernels of the usual presets compiled ahead of time (``numba.pycc``), so that a process
 that matches with them loads machine code like any extension module instead of starting numba's
 JIT runtime and loading each kernel from its cache (about 0.4 s of every ``stereocli`` process),
 and a first run after installing compiles nothing on that path.
@@ -15,8 +15,9 @@ files, so an edited kernel never runs stale), the same CPU (the modules are comp
 host CPU's instruction set: AVX-512 code would crash an older CPU) and the same NumPy major
 version. ``STEREOCLI_AOT=0`` turns them off.
 
-The kernels and argument types compiled are those of a default run, listed in
-:data:`SIGNATURES_FILE` (``tests/test_aot.py`` checks that a default run calls no others).
+The kernels and argument types compiled are those of the ``default``, ``fast``, ``accurate`` and
+``realtime`` presets, listed in :data:`SIGNATURES_FILE` (``tests/test_aot.py`` checks the list
+against runs of those presets).
 """
 
 from __future__ import annotations
@@ -320,7 +321,7 @@ def main(argv: list[str] | None = None) -> int:
     """``python -m stereocli.match.kernels.aot [FOLDER]``: build into FOLDER (default: the package)."""
     argv = sys.argv[1:] if argv is None else argv
     folder = Path(argv[0]) if argv else BUILD_DIR
-    print(f"compiling the default path's kernels ahead of time into {folder} ...")
+    print(f"compiling the usual presets' kernels ahead of time into {folder} ...")
     seconds = build(folder)
     print(f"done in {seconds:.0f} s")
     return 0

@@ -103,11 +103,3 @@ def disparity_bins(disp: np.ndarray, min_disp: int, ndisp: int) -> np.ndarray:
     bins = np.empty(disp.shape, np.int32)
     for_rows(_disparity_bins_rows, disp.shape[0], disp, int(min_disp), int(ndisp), bins)
     return bins
-
-
-@njit(cache=True)
-def disparity_bins_serial(disp: np.ndarray, min_disp: int, ndisp: int) -> np.ndarray:
-    """:func:`disparity_bins` for compiled callers (one thread)."""
-    bins = np.empty(disp.shape, np.int32)
-    _bins_rows(disp, min_disp, ndisp, bins, 0, disp.shape[0])
-    return bins

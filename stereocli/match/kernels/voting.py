@@ -9,9 +9,9 @@ Disparity maps are (H, W) float32 px, left-referenced, +inf = outlier (unreliabl
 from __future__ import annotations
 
 import numpy as np
-from . import njit, prange
 
-from .maps import disparity_bins_serial
+from . import chunk_kernel, for_rows, njit, prange
+from .maps import disparity_bins
 
 INF = np.float32(np.inf)
 
@@ -22,7 +22,6 @@ DIRECTIONS16 = np.array(
      (0, -1), (-1, -2), (-1, -1), (-2, -1), (-1, 0), (-2, 1), (-1, 1), (-1, 2)], np.int32)
 
 
-@njit(cache=True, parallel=True)
 def region_vote(disp: np.ndarray, arms: np.ndarray, min_disp: int, ndisp: int, min_votes: int,
                 min_share: float, stride: int = 1) -> np.ndarray:
     """One pass of region voting: each outlier takes the dominant reliable disparity of its
@@ -39,23 +38,32 @@ def region_vote(disp: np.ndarray, arms: np.ndarray, min_disp: int, ndisp: int, m
     stride²). Reads only the input map (Jacobi update), so the result does not depend on the
     order pixels are visited. Returns a new map.
     """
+    disp = np.ascontiguousarray(disp, dtype=np.float32)
+    arms = np.ascontiguousarray(arms, dtype=np.int32)
     h, w = disp.shape
     out = disp.copy()
-    half = (h + 1) // 2
-    need = max(1, (min_votes + stride * stride - 1) // (stride * stride))
+    need = max(1, (int(min_votes) + stride * stride - 1) // (stride * stride))
     # An arm of length a reaches a − a mod stride on the grid: looked up, not divided, per row.
-    snap = np.empty(max(h, w) + 1, np.int64)
-    for v in range(snap.shape[0]):
-        snap[v] = v // stride * stride
+    snap = np.arange(max(h, w) + 1, dtype=np.int64) // stride * stride
     # Each pixel's vote, computed once (a pixel is in the regions of up to ~300 outliers): its
     # 1-px bin, or −1 for an outlier or a disparity outside the range.
-    bins = disparity_bins_serial(disp, min_disp, ndisp)
-    for i in prange(h):
+    bins = disparity_bins(disp, min_disp, ndisp)
+    for_rows(_region_vote_rows, h, disp, arms, bins, snap, int(ndisp), int(need), float(min_share), int(stride), out)
+    return out
+
+
+@chunk_kernel
+def _region_vote_rows(disp, arms, bins, snap, ndisp: int, need: int, min_share: float, stride: int, out,
+                      i0: int, i1: int) -> None:
+    """:func:`region_vote` of the rows ``i0 ≤ i < i1`` of the interleaved order."""
+    h, w = disp.shape
+    half = (h + 1) // 2
+    hist = np.zeros(ndisp, np.int32)
+    sums = np.zeros(ndisp, np.float64)
+    for i in range(i0, i1):
         # Rows interleaved from both halves of the image: outliers cluster (occluded bands,
-        # textureless areas), and prange gives each thread one contiguous block of i.
+        # textureless areas), and each chunk is one contiguous block of i.
         y = i // 2 if i % 2 == 0 else half + i // 2
-        hist = np.zeros(ndisp, np.int32)
-        sums = np.zeros(ndisp, np.float64)
         for x in range(w):
             if np.isfinite(disp[y, x]):
                 continue
@@ -92,7 +100,6 @@ def region_vote(disp: np.ndarray, arms: np.ndarray, min_disp: int, ndisp: int, m
                 out[y, x] = np.float32(sums[best] / hist[best])
             hist[kmin:kmax + 1] = 0
             sums[kmin:kmax + 1] = 0.0
-    return out
 
 
 @njit(cache=True, parallel=True)
