@@ -85,7 +85,7 @@ def cli(ctx: click.Context, verbose: int, quiet: int) -> None:
 
 #: Said on stderr when kernels compile (the numbers are the README's "Start-up and first run").
 COMPILE_NOTICE = ("stereocli: compiling the numba kernels that this preset or image type needs beyond those built "
-                  "at install: about 13 s on two cores for accurate, once; later runs load them from the cache")
+                  "at install: about 10-13 s on two cores, once; later runs load them from the cache")
 
 
 def _on_first_compile(ctx: click.Context):
