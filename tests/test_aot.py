@@ -101,6 +101,10 @@ def test_type_names_are_numbas_own():
     frozen.flags.writeable = False
     assert aot.type_name(frozen) is None  # numba's "readonly array": no compiled signature takes it
     assert aot.type_name("text") is None
+    # and back: the build compiles the listed names as the types they name
+    for signatures in aot.read_signatures().values():
+        for name in {name for signature in signatures for name in signature}:
+            assert str(aot.numba_type(name)) == name
 
 
 def test_the_listed_signatures_are_those_of_the_built_presets(monkeypatch):

@@ -29,6 +29,7 @@ import importlib.util
 import json
 import os
 import sys
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -41,7 +42,8 @@ BUILD_DIR = KERNELS_DIR / "_aot"
 #: One line per compiled kernel: ``module.kernel<TAB>type, type, ...`` (numba's type names).
 SIGNATURES_FILE = KERNELS_DIR / "aot_signatures.txt"
 MANIFEST = "manifest.json"
-#: Package of the built modules (``_aot`` is a plain folder: found by path, never imported by name).
+#: Name prefix of the built extension modules (``_aot`` is a plain folder: they are loaded by
+#: path, never imported by name).
 MODULE_PREFIX = "stereocli_aot_"
 
 
@@ -102,7 +104,8 @@ def cpu_fingerprint() -> str:
     """What identifies the instruction set the modules were compiled for: the CPU model and
     feature flags from ``/proc/cpuinfo``, or LLVM's host CPU name and features elsewhere."""
     try:
-        text = Path("/proc/cpuinfo").read_text()
+        with open("/proc/cpuinfo") as cpuinfo:
+            text = cpuinfo.read(1 << 16)  # the first processor's entry is enough
         lines = text.split("\n\n")[0].splitlines()
         wanted = [line for line in lines if line.split(":")[0].strip() in ("vendor_id", "model name", "flags")]
         if wanted:
@@ -230,13 +233,14 @@ def build(folder: Path = BUILD_DIR, jobs: int = 0, log=print, only: list[str] | 
     jobs = max(1, min(jobs or os.cpu_count() or 1, len(kernels)))
     # Largest first (argument count: a rough measure), so that the last to finish are small.
     order = sorted(kernels, key=lambda k: (-len(kernels[k][0]), k))
-    work = [(str(folder), MODULE_PREFIX + export_name(k, 0)[:-2], {k: kernels[k]}) for k in order]
     context = multiprocessing.get_context("spawn")  # a clean numba in each worker
-    with ProcessPoolExecutor(max_workers=jobs, mp_context=context) as pool:
-        for (_, name, _), seconds in zip(work, pool.map(_build_module, work)):
+    with tempfile.TemporaryDirectory(prefix="stereocli-aot-") as scratch, \
+            ProcessPoolExecutor(max_workers=jobs, mp_context=context) as pool:
+        work = [(str(folder), MODULE_PREFIX + export_name(k, 0)[:-2], {k: kernels[k]}, scratch) for k in order]
+        for (_, name, _, _), seconds in zip(work, pool.map(_build_module, work)):
             log(f"  {name}: {seconds:.1f} s")
     manifest = expected_manifest({kernel: {"module": name, "signatures": [list(s) for s in group[kernel]]}
-                                  for _, name, group in work for kernel in group})
+                                  for _, name, group, _ in work for kernel in group})
     (folder / (MANIFEST + ".tmp")).write_text(json.dumps(manifest, indent=1, sort_keys=True) + "\n")
     os.replace(folder / (MANIFEST + ".tmp"), folder / MANIFEST)
     return time.perf_counter() - started
@@ -245,10 +249,10 @@ def build(folder: Path = BUILD_DIR, jobs: int = 0, log=print, only: list[str] | 
 _runtime_objects: dict = {}  # numba's C runtime objects, compiled once per build process
 
 
-def _build_module(job: tuple[str, str, dict[str, list[tuple[str, ...]]]]) -> float:
-    """Compile kernels into one extension module (in a worker process); export
-    ``<kernel name>_<i>`` for the kernel's i-th signature."""
-    folder, name, kernels = job
+def _build_module(job: tuple[str, str, dict[str, list[tuple[str, ...]]], str]) -> float:
+    """Compile kernels into one extension module (in a worker process; ``scratch``: a folder for
+    numba's C runtime objects), exporting :func:`export_name` for each signature."""
+    folder, name, kernels, scratch = job
     started = time.perf_counter()
     from numba.core import types
     from numba.core.compiler import Flags
@@ -273,10 +277,7 @@ def _build_module(job: tuple[str, str, dict[str, list[tuple[str, ...]]]]) -> flo
             self.auto_parallel = ParallelOptions(prange_only())
 
     pycc_compiler.Flags = ChunkKernelFlags
-    namespace = {name: getattr(types, name) for name in ("float32", "float64", "int8", "int16", "int32", "int64",
-                                                         "uint8", "uint16", "uint32", "uint64")}
-    namespace.update(bool=types.boolean, C="C", A="A", F="F",
-                     array=lambda dtype, ndim, layout: types.Array(dtype, ndim, layout))
+
     class SharedRuntimeCC(CC):
         """Compiles ``modulemixin.c`` (the module's own entry point) for each module, and the
         rest of numba's C runtime (the same for every module: 1.2 s) once per process."""
@@ -287,9 +288,7 @@ def _build_module(job: tuple[str, str, dict[str, list[tuple[str, ...]]]]) -> flo
             options = dict(include_dirs=self._toolchain.get_python_include_dirs(), macros=self._get_mixin_defines(),
                            extra_cflags=self._get_extra_cflags())
             if "objects" not in _runtime_objects:
-                import tempfile
-
-                runtime_dir = tempfile.mkdtemp(prefix="stereocli-aot-runtime-")
+                runtime_dir = tempfile.mkdtemp(prefix="runtime-", dir=scratch)
                 _runtime_objects["objects"] = self._toolchain.compile_objects(shared, runtime_dir, **options)
             return self._toolchain.compile_objects(own, build_dir, **options) + _runtime_objects["objects"]
 
@@ -299,10 +298,22 @@ def _build_module(job: tuple[str, str, dict[str, list[tuple[str, ...]]]]) -> flo
     cc.verbose = False
     for kernel, signatures in kernels.items():
         for i, names in enumerate(signatures):
-            argument_types = [eval(n.replace("d,", ","), namespace) for n in names]  # noqa: S307 - our own file
+            argument_types = [numba_type(n) for n in names]
             cc.export(export_name(kernel, i), types.void(*argument_types))(_python_function(kernel))
     cc.compile()
     return time.perf_counter() - started
+
+
+def numba_type(name: str):
+    """The numba type named ``name`` (:func:`type_name`'s names: ``int64``, ``bool``,
+    ``array(float32, 2d, C)``, ...)."""
+    from numba.core import types
+
+    scalar = {"bool": types.boolean}
+    if name.startswith("array("):
+        dtype, ndim, layout = (part.strip() for part in name[len("array("):-1].split(","))
+        return types.Array(numba_type(dtype), int(ndim.rstrip("d")), layout)
+    return scalar.get(name) or getattr(types, name)
 
 
 def export_name(kernel: str, i: int) -> str:
