@@ -11,12 +11,14 @@ from __future__ import annotations
 
 import functools
 import sys
+import threading
 import warnings
 
 # The expected note of numba's parallel pipeline on a :func:`chunk_kernel` (it has no prange).
 warnings.filterwarnings("ignore", message="(?s).*no transformation for parallel execution was possible")
 
 _numba_threads = [0]  # numba's thread count for its prange kernels (0: its default)
+_start_lock = threading.Lock()
 
 
 def prange_only() -> dict:
@@ -58,8 +60,12 @@ class LazyKernel:
 
     def dispatcher(self):
         """numba's dispatcher (starting numba if needed)."""
-        if self._made is None:
+        if not _numba_started[0]:
             start_numba()
+        if self._made is None:  # made while numba was starting (a module imported meanwhile)
+            import numba
+
+            self._make(numba)
         return self._made
 
     def __call__(self, *args):
@@ -119,24 +125,25 @@ def prange(*args):
 def start_numba() -> None:
     """Import numba, make every lazy kernel and intrinsic, and put them (and ``numba.prange``) in
     place of the lazy objects in stereocli's modules, before anything compiles."""
-    if _numba_started[0]:
-        return
-    import numba
+    with _start_lock:  # threads (a Dask worker's) may need the JIT at once
+        if _numba_started[0]:
+            return
+        import numba
 
-    for made in _lazy_objects:
-        made._make(numba)
-    _numba_started[0] = True
-    for name, module in list(sys.modules.items()):
-        if not name.startswith("stereocli.") or module is None:
-            continue
-        namespace = vars(module)
-        for key, value in list(namespace.items()):
-            if isinstance(value, (LazyKernel, LazyIntrinsic)):
-                namespace[key] = value._made
-            elif value is prange and module is not sys.modules[__name__]:
-                namespace[key] = numba.prange
-    _lazy_objects.clear()
-    globals()["prange"] = numba.prange  # for kernel modules imported from now on
+        for made in _lazy_objects:
+            made._make(numba)
+        for name, module in list(sys.modules.items()):
+            if not name.startswith("stereocli.") or module is None:
+                continue
+            namespace = vars(module)
+            for key, value in list(namespace.items()):
+                if isinstance(value, (LazyKernel, LazyIntrinsic)):
+                    namespace[key] = value._made
+                elif value is prange and module is not sys.modules[__name__]:
+                    namespace[key] = numba.prange
+        _lazy_objects.clear()
+        globals()["prange"] = numba.prange  # for kernel modules imported from now on
+        _numba_started[0] = True  # last: other threads use the dispatchers only once all are in place
     set_numba_threads(_numba_threads[0])
 
 
