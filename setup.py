@@ -38,7 +38,7 @@ class BuildWithKernels(build_py):
             from stereocli.match.kernels import aot
 
             print(f"stereocli: compiling the usual presets' kernels ahead of time into {root / KERNELS / '_aot'} "
-                  "(about 30 s on two cores)", flush=True)
+                  "(about 35 s on two cores)", flush=True)
             seconds = aot.build(root / KERNELS / "_aot", log=lambda line: print(line, flush=True))
             print(f"stereocli: kernels compiled in {seconds:.0f} s", flush=True)
         except Exception as exc:  # noqa: BLE001 - the install goes on; the kernels compile on first use
