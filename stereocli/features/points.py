@@ -12,12 +12,13 @@ tenth of a pixel. The matches need no disparity range.
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 from typing import Literal
 
 import cv2
 import numpy as np
+
+from ..match.kernels import side_by_side
 
 #: Largest descriptor distance ratio best / second best of a kept match.
 RATIO = 0.8
@@ -85,8 +86,10 @@ def match_points(left: np.ndarray, right: np.ndarray, *, left_valid: np.ndarray 
         raise ValueError(f"unknown feature method {method!r}; valid: {', '.join(METHODS)}")
     create, norm = METHODS[method]
     a, b = grey_uint8(left), grey_uint8(right)
-    (keys_a, desc_a), (keys_b, desc_b) = _both(lambda: create(max_features).detectAndCompute(a, _mask(left_valid)),
-                                               lambda: create(max_features).detectAndCompute(b, _mask(right_valid)))
+    # The two views' features side by side (OpenCV releases the GIL; the same either way).
+    (keys_a, desc_a), (keys_b, desc_b) = side_by_side(
+        lambda: create(max_features).detectAndCompute(a, _mask(left_valid)),
+        lambda: create(max_features).detectAndCompute(b, _mask(right_valid)))
     empty = np.zeros((0, 2), np.float32)
     if desc_a is None or desc_b is None or len(keys_b) < 2:
         return PointMatches(empty, empty, len(keys_a))
@@ -120,23 +123,4 @@ def _nearest(queries: np.ndarray, candidates: np.ndarray, norm: int, *, second: 
     best = np.array([pair[0].distance for pair in pairs], np.float64)
     runner_up = np.array([pair[1].distance for pair in pairs], np.float64) if second else best
     return index, best, runner_up
-
-
-_helper: list = [None, 0]  # (a one-thread executor, the process it belongs to: a forked child makes its own)
-
-
-def _both(first, second) -> tuple:
-    """``(first(), second())``, the second on a helper thread when the kernels may use two or more
-    (``runtime.threads``): the two views' features are found side by side (OpenCV releases the
-    GIL; the results are the same either way)."""
-    from ..match.kernels import kernel_threads
-
-    if kernel_threads() < 2:
-        return first(), second()
-    if _helper[0] is None or _helper[1] != os.getpid():
-        from concurrent.futures import ThreadPoolExecutor
-
-        _helper[:] = ThreadPoolExecutor(1, thread_name_prefix="stereocli-features"), os.getpid()
-    later = _helper[0].submit(second)
-    return first(), later.result()
 

@@ -14,7 +14,7 @@ import threading
 from .compiling import LazyKernel, chunk_kernel, intrinsic, njit, numba_started, prange, prange_only, set_numba_threads
 
 __all__ = ["chunk_kernel", "for_chunks", "for_rows", "intrinsic", "kernel_threads", "njit", "prange", "prange_only",
-           "set_threads"]
+           "set_threads", "side_by_side"]
 
 
 # --- kernel threads -------------------------------------------------------------------------
@@ -89,14 +89,7 @@ def _run(kernel, calls: list[tuple]) -> None:
         for call in calls:
             kernel(*call)
         return
-    # One pool of threads − 1 for every call, whatever its number of chunks: a call with fewer
-    # chunks than threads (SGM's two stripes) just leaves some idle.
-    if _pool[0] is None or _pool[1] != threads - 1 or _pool[2] != os.getpid():
-        from concurrent.futures import ThreadPoolExecutor
-
-        if _pool[0] is not None and _pool[2] == os.getpid():
-            _pool[0].shutdown()
-        _pool[:] = ThreadPoolExecutor(threads - 1, thread_name_prefix="stereocli-kernel"), threads - 1, os.getpid()
+    pool = _helper_pool(threads)
     # Every thread takes the next call from a shared counter (next() is atomic) until none is
     # left. The caller waits for the calls taken, not for the helpers: a small kernel's calls
     # may all be done before a helper wakes up (tens of microseconds), which then finds none.
@@ -118,8 +111,31 @@ def _run(kernel, calls: list[tuple]) -> None:
                     finished.set()
 
     for _ in range(helpers):
-        _pool[0].submit(work)
+        pool.submit(work)
     work()
     finished.wait()
     if progress["error"] is not None:
         raise progress["error"]
+
+
+def _helper_pool(threads: int):
+    """The kernel threads' executor: ``threads`` − 1 helpers beside the calling thread, one pool
+    for every call whatever its number of chunks (a call with fewer chunks than threads, SGM's
+    two stripes, just leaves some idle)."""
+    if _pool[0] is None or _pool[1] != threads - 1 or _pool[2] != os.getpid():
+        from concurrent.futures import ThreadPoolExecutor
+
+        if _pool[0] is not None and _pool[2] == os.getpid():
+            _pool[0].shutdown()
+        _pool[:] = ThreadPoolExecutor(threads - 1, thread_name_prefix="stereocli-kernel"), threads - 1, os.getpid()
+    return _pool[0]
+
+
+def side_by_side(first, second) -> tuple:
+    """``(first(), second())``, the second on a kernel thread when there are two or more
+    (:func:`kernel_threads`); for work that releases the GIL (OpenCV's), between kernels."""
+    threads = kernel_threads()
+    if threads < 2:
+        return first(), second()
+    later = _helper_pool(threads).submit(second)
+    return first(), later.result()

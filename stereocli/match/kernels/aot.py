@@ -130,11 +130,8 @@ def find(kernel, args: tuple):
     or None (no usable built folder, or a kernel or signature it does not hold)."""
     table = _table[0]
     if table is None:
-        with _table_lock:  # threads of a Dask worker may match pairs at once
-            if _table[0] is None:
-                _table[0] = _load_table()
-            table = _table[0]
-    if not table or kernel is None:
+        table = _loaded_table()
+    if not table:
         return None
     entry = table.get(getattr(kernel, "py_func", None))
     if entry is None:
@@ -143,6 +140,14 @@ def find(kernel, args: tuple):
 
 
 _why_not: list = [""]  # why the build is not used ("" while it is, or before the first lookup)
+
+
+def _loaded_table() -> dict:
+    """The table of the built folder, loaded on first use (once per process)."""
+    with _table_lock:  # threads of a Dask worker may match pairs at once
+        if _table[0] is None:
+            _table[0] = _load_table()
+        return _table[0]
 
 
 def _load_table() -> dict:
@@ -177,9 +182,9 @@ def _usable_build() -> tuple[dict, str]:
 
 def describe() -> str:
     """One line on the kernels compiled at install, for records and ``--show-versions``."""
-    find(None, ())  # loads the table once
-    if _table[0]:
-        return f"{len(_table[0])} compiled at install; others from numba's JIT"
+    table = _loaded_table()
+    if table:
+        return f"{len(table)} compiled at install; others from numba's JIT"
     return f"none compiled at install ({_why_not[0]}): numba's JIT"
 
 

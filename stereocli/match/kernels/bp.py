@@ -13,6 +13,7 @@ send while the others only receive, so a parallel sweep over rows never races.
 from __future__ import annotations
 
 import numpy as np
+
 from . import njit, prange
 
 from .dp import _dt_truncated_linear

@@ -15,8 +15,8 @@ Tests compare every kernel with a tiny pure-numpy reference (``tests/test_costs.
 from __future__ import annotations
 
 import numpy as np
-from . import chunk_kernel, for_rows, njit, prange
 
+from . import chunk_kernel, for_rows, njit, prange
 from .census import _popcount64
 
 #: pixel-wise cost modes of :func:`window_cost_volume` / :func:`pixel_cost_volume`

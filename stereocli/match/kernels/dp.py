@@ -8,6 +8,7 @@ cost of left pixel x against right pixel ``x - (min_disp + k)``, lower is better
 from __future__ import annotations
 
 import numpy as np
+
 from . import njit, prange
 
 INF = np.float32(np.inf)

@@ -38,6 +38,7 @@ Layout and numerics (see ``tests/test_kernels_sgm.py`` for the pure-numpy refere
 from __future__ import annotations
 
 import numpy as np
+
 from . import chunk_kernel, for_chunks, for_rows, intrinsic, njit
 
 INF = np.float32(np.inf)
