@@ -82,12 +82,16 @@ def test_ransac_is_reproducible_with_a_seed():
     assert not np.array_equal(first, other)
 
 
-def test_segmentation_separates_colours_and_fits_each_plane():
+@pytest.mark.parametrize("smoothing", ["bilateral", "mean_shift"])
+def test_segmentation_separates_colours_and_fits_each_plane(smoothing):
     h, w = 60, 80
     image = np.zeros((h, w, 3), np.float32)
     image[:, :40] = (200, 40, 40)
     image[:, 40:] = (30, 60, 220)
-    labels = segment_image(image, 5, 10.0, 4.0, 20)
+    # Noise the smoothing has to remove: raw pixels differ from their neighbours by up to 12
+    # grey levels, far beyond the tolerance of 4 that grows the segments.
+    image += np.random.default_rng(3).uniform(-6, 6, image.shape).astype(np.float32)
+    labels = segment_image(image, 5, 10.0, 4.0, 20, smoothing)
     assert labels[0, 0] != labels[0, -1] and len(np.unique(labels)) == 2
     ys, xs = np.mgrid[0:h, 0:w]
     gt = np.where(xs < 40, 5.0 + 0.05 * xs, 20.0 - 0.02 * ys).astype(np.float32)
@@ -95,9 +99,9 @@ def test_segmentation_separates_colours_and_fits_each_plane():
     disp[::7, ::5] = np.inf
     disp[5:15, 30:50] = 3.0  # a wrong blob straddling both segments
     state = _state(disp, image)
-    registry.get("refinement", "plane_fit").func(state, PlaneFitParams(replace="outliers"))
+    registry.get("refinement", "plane_fit").func(state, PlaneFitParams(replace="outliers", segmentation=smoothing))
     wrong = np.abs(state.disparity - gt) > 0.02
-    # mean-shift may move a few pixels at the colour edge into the other segment
+    # the smoothing may move a few pixels at the colour edge into the other segment
     assert wrong.mean() < 0.005 and (np.abs(xs[wrong] - 40) <= 3).all()
 
 

@@ -175,8 +175,9 @@ def _discontinuity_windows(disp: np.ndarray, radius: int, min_spread: float, fil
 @dataclass(frozen=True)
 class PlaneFitParams:
     method: str = param("ransac", "plane estimator per segment", choices=("ransac", "histogram"))
-    spatial_radius: int = param(5, "mean-shift spatial window radius (cv2.pyrMeanShiftFiltering sp)", unit="px", low=1, high=100)
-    colour_radius: float = param(6.0, "mean-shift colour window radius (sr)", unit="grey levels", low=1.0, high=255.0)
+    segmentation: str = param("bilateral", "edge-preserving smoothing before the colour segments are grown: an OpenCV bilateral filter (about 30 ms for 0.35 MP) or mean-shift filtering (cv2.pyrMeanShiftFiltering, about 300 ms; same scores on MiddEval3)", choices=("bilateral", "mean_shift"))
+    spatial_radius: int = param(5, "smoothing window radius: mean-shift sp; bilateral: a (2·r − 1)-px filter with σ_space = r", unit="px", low=1, high=100)
+    colour_radius: float = param(6.0, "colour window radius: mean-shift sr; bilateral: σ_colour = 2·r", unit="grey levels", low=1.0, high=255.0)
     tolerance: float = param(2.0, "neighbours whose filtered colours differ by at most this join a segment", unit="grey levels", low=0.0, high=255.0)
     min_size: int = param(30, "smaller segments are merged into a neighbour", unit="px", low=1, high=100000)
     min_points: int = param(20, "fit a plane only with at least this many reliable pixels", low=3, high=1000000)
@@ -190,12 +191,16 @@ class PlaneFitParams:
     seed: int = param(0, "RNG seed of the RANSAC sampling (results are reproducible)", low=0, high=2**31 - 1)
 
 
-def segment_image(image: np.ndarray, spatial_radius: int, colour_radius: float, tolerance: float, min_size: int) -> np.ndarray:
-    """Colour segmentation: mean-shift filtering (OpenCV) + tolerant connected components.
+def segment_image(image: np.ndarray, spatial_radius: int, colour_radius: float, tolerance: float, min_size: int,
+                  smoothing: str = "mean_shift") -> np.ndarray:
+    """Colour segmentation: edge-preserving smoothing (OpenCV mean-shift filtering, or a
+    bilateral filter with σ_space = ``spatial_radius`` and σ_colour = 2·``colour_radius``)
+    + tolerant connected components.
 
     Parameters
     ----------
     image : (H, W) or (H, W, 3) float32 in [0, 255].
+    smoothing : "mean_shift" or "bilateral".
 
     Returns
     -------
@@ -205,7 +210,15 @@ def segment_image(image: np.ndarray, spatial_radius: int, colour_radius: float, 
     if img.shape[2] == 1:
         img = np.repeat(img, 3, axis=2)
     img8 = np.clip(np.rint(img[..., :3]), 0, 255).astype(np.uint8)
-    filtered = cv2.pyrMeanShiftFiltering(img8, float(spatial_radius), float(colour_radius))
+    if smoothing == "bilateral":
+        # A window radius of two standard deviations of the colour weight, as mean shift's
+        # colour radius bounds its window.
+        filtered = cv2.bilateralFilter(img8, 2 * int(spatial_radius) - 1, 2.0 * float(colour_radius),
+                                       float(spatial_radius))
+    elif smoothing == "mean_shift":
+        filtered = cv2.pyrMeanShiftFiltering(img8, float(spatial_radius), float(colour_radius))
+    else:
+        raise ValueError(f"segment_image: unknown smoothing {smoothing!r}")
     return ks.label_regions(np.ascontiguousarray(filtered, dtype=np.float32), float(tolerance), int(min_size))
 
 
@@ -227,18 +240,21 @@ def fit_segment_planes(disp: np.ndarray, labels: np.ndarray, p: PlaneFitParams):
 def plane_fit(state: MatchState, p: PlaneFitParams) -> None:
     """Segment-based outlier replacement: fit d = a·x + b·y + c per colour segment.
 
-    The left image is segmented (OpenCV mean-shift filtering + connected components of
-    similar colour); each segment's plane is fitted to its reliable pixels (the finite ones:
-    place this stage after ``lr_check``) by RANSAC (seeded) or by histogram voting on the
-    disparity gradients, then refined by least squares on the inliers. Invalid pixels
-    (occlusions, mismatches) of segments with a trustworthy plane are replaced by the plane;
-    ``replace: outliers`` also replaces valid pixels far from it, ``all`` every pixel (only
-    safe when segments never straddle two surfaces). Assumes segments are planar surfaces:
-    great on piecewise-planar scenes, can flatten curved or thin structures that share a
-    colour segment (the reason the default replaces only invalid pixels).
+    The left image is segmented (an edge-preserving bilateral filter or mean-shift filtering,
+    then connected components of similar colour); each segment's plane is fitted to its
+    reliable pixels (the finite ones: place this stage after ``lr_check``) by RANSAC (seeded) or
+    by histogram voting on the disparity gradients, then refined by least squares on the
+    inliers. Invalid pixels (occlusions, mismatches) of segments with a trustworthy plane are
+    replaced by the plane; ``replace: outliers`` also replaces valid pixels far from it, ``all``
+    every pixel (only safe when segments never straddle two surfaces). Assumes segments are
+    planar surfaces: great on piecewise-planar scenes, can flatten curved or thin structures
+    that share a colour segment (the reason ``replace`` defaults to invalid pixels only). The
+    ``accurate`` and ``quality`` presets place it after ``lr_check``, before ``fill``: the
+    rejected pixels inside a surface get its plane instead of the scanline fill's background
+    value (MiddEval3-Q bad 2.0 18.31 → 17.88 on the default).
     """
     disp = np.ascontiguousarray(state.disparity, dtype=np.float32)
-    labels = segment_image(state.left, p.spatial_radius, p.colour_radius, p.tolerance, p.min_size)
+    labels = segment_image(state.left, p.spatial_radius, p.colour_radius, p.tolerance, p.min_size, p.segmentation)
     planes, support, inliers, counts = fit_segment_planes(disp, labels, p)
     use = (support >= np.maximum(p.min_points, p.min_reliable * counts)) & (inliers >= p.min_inliers * np.maximum(support, 1)) & (inliers > 0)
     lo, hi = float(state.min_disp), float(state.min_disp + state.ndisp - 1)

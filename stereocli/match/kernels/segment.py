@@ -37,15 +37,9 @@ def _union(parent: np.ndarray, size: np.ndarray, a: int, b: int) -> None:
     size[ra] += size[rb]
 
 
-@njit(cache=True)
-def label_regions(img: np.ndarray, tolerance: float, min_size: int) -> np.ndarray:
-    """Connected components of 4-neighbours whose colours differ by at most ``tolerance``.
-
-    ``img`` is (H, W, C) float32 (e.g. mean-shift filtered); the difference is the largest
-    channel difference. Components smaller than ``min_size`` pixels are then merged into an
-    adjacent component (raster order of the edges, Felzenszwalb–Huttenlocher 2004 style).
-    Returns int32 (H, W) labels 0..n-1 in raster order of first appearance (deterministic).
-    """
+@chunk_kernel
+def _label_regions_chunk(img, tolerance: float, min_size: int, labels, n_chunks: int, chunk: int) -> None:
+    """:func:`label_regions` into ``labels`` (a single chunk: the union-find runs serially)."""
     h, w, c = img.shape
     n = h * w
     parent = np.arange(n)
@@ -73,7 +67,6 @@ def label_regions(img: np.ndarray, tolerance: float, min_size: int) -> np.ndarra
                 ra, rb = _find(parent, i), _find(parent, j)
                 if ra != rb and (size[ra] < min_size or size[rb] < min_size):
                     _union(parent, size, ra, rb)
-    labels = np.empty((h, w), np.int32)
     remap = np.full(n, -1, np.int64)
     nxt = 0
     for y in range(h):
@@ -83,6 +76,19 @@ def label_regions(img: np.ndarray, tolerance: float, min_size: int) -> np.ndarra
                 remap[r] = nxt
                 nxt += 1
             labels[y, x] = remap[r]
+
+
+def label_regions(img: np.ndarray, tolerance: float, min_size: int) -> np.ndarray:
+    """Connected components of 4-neighbours whose colours differ by at most ``tolerance``.
+
+    ``img`` is (H, W, C) float32 (e.g. mean-shift filtered); the difference is the largest
+    channel difference. Components smaller than ``min_size`` pixels are then merged into an
+    adjacent component (raster order of the edges, Felzenszwalb–Huttenlocher 2004 style).
+    Returns int32 (H, W) labels 0..n-1 in raster order of first appearance (deterministic).
+    """
+    labels = np.empty(img.shape[:2], np.int32)
+    for_chunks(_label_regions_chunk, 1, np.ascontiguousarray(img, dtype=np.float32), float(tolerance), int(min_size),
+               labels, 1)
     return labels
 
 
@@ -170,28 +176,14 @@ def _densest(values: np.ndarray, width: float) -> float:
     return s / best_n
 
 
-@njit(cache=True, parallel=True)
-def fit_planes(disp, labels, order, starts, method: int, iterations: int, inlier: float,
-               min_points: int, seed: int, slope_bin: float):
-    """Fit ``d = a·(x − cx) + b·(y − cy) + c`` per segment to its finite disparities.
-
-    ``order``/``starts``: flat pixel indices sorted by label and the start of each label's run
-    (length n_segments + 1). ``method`` 0 = RANSAC (3-point samples from a per-segment
-    xorshift RNG seeded by ``seed`` and the segment id, best inlier count, then least-squares
-    refits on the inliers), 1 = histogram voting (slopes a, b as the densest bin of horizontal
-    / vertical disparity differences inside the segment, then c likewise; Klaus et al. 2006),
-    followed by the same least-squares refits.
-
-    Returns (planes (n, 5) float64 [a, b, c, cx, cy], support (n,) int64 reliable pixels,
-    inliers (n,) int64); segments with fewer than ``min_points`` reliable pixels or a
-    degenerate fit get inliers = 0.
-    """
+@chunk_kernel
+def _fit_planes_chunk(disp, labels, order, starts, method: int, iterations: int, inlier: float, min_points: int,
+                      seed: int, slope_bin: float, planes, support, inliers, n_chunks: int, chunk: int) -> None:
+    """:func:`fit_planes` for the segments of ``chunk`` (of ``n_chunks``), written into
+    ``planes``, ``support`` and ``inliers``."""
     h, w = disp.shape
     nseg = starts.shape[0] - 1
-    planes = np.zeros((nseg, 5))
-    support = np.zeros(nseg, np.int64)
-    inliers = np.zeros(nseg, np.int64)
-    for s in prange(nseg):
+    for s in range(chunk * nseg // n_chunks, (chunk + 1) * nseg // n_chunks):
         a0, a1 = starts[s], starts[s + 1]
         n = 0
         for t in range(a0, a1):
@@ -283,6 +275,30 @@ def fit_planes(disp, labels, order, starts, method: int, iterations: int, inlier
         planes[s, 2] = best[2]
         planes[s, 3] = cx
         planes[s, 4] = cy
+
+
+def fit_planes(disp, labels, order, starts, method: int, iterations: int, inlier: float,
+               min_points: int, seed: int, slope_bin: float):
+    """Fit ``d = a·(x − cx) + b·(y − cy) + c`` per segment to its finite disparities.
+
+    ``order``/``starts``: flat pixel indices sorted by label and the start of each label's run
+    (length n_segments + 1). ``method`` 0 = RANSAC (3-point samples from a per-segment
+    xorshift RNG seeded by ``seed`` and the segment id, best inlier count, then least-squares
+    refits on the inliers), 1 = histogram voting (slopes a, b as the densest bin of horizontal
+    / vertical disparity differences inside the segment, then c likewise; Klaus et al. 2006),
+    followed by the same least-squares refits.
+
+    Returns (planes (n, 5) float64 [a, b, c, cx, cy], support (n,) int64 reliable pixels,
+    inliers (n,) int64); segments with fewer than ``min_points`` reliable pixels or a
+    degenerate fit get inliers = 0.
+    """
+    nseg = starts.shape[0] - 1
+    planes = np.zeros((nseg, 5))
+    support = np.zeros(nseg, np.int64)
+    inliers = np.zeros(nseg, np.int64)
+    n_chunks = max(1, min(nseg, 16))  # segments differ in size: several chunks per thread balance them
+    for_chunks(_fit_planes_chunk, n_chunks, disp, labels, order, starts, int(method), int(iterations), float(inlier),
+               int(min_points), int(seed), float(slope_bin), planes, support, inliers, n_chunks)
     return planes, support, inliers
 
 
