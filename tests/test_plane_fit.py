@@ -82,6 +82,50 @@ def test_ransac_is_reproducible_with_a_seed():
     assert not np.array_equal(first, other)
 
 
+def _label_regions_reference(img: np.ndarray, tolerance: float, min_size: int) -> np.ndarray:
+    """label_regions by its definition: union-find over 4-neighbour links of similar colour in
+    raster order, then, in raster order of the links, merging of components under min_size;
+    labels in raster order of first appearance."""
+    h, w, _ = img.shape
+    parent = list(range(h * w))
+    size = [1] * (h * w)
+
+    def find(i):
+        while parent[i] != i:
+            i = parent[i]
+        return i
+
+    def union(a, b):
+        ra, rb = find(a), find(b)
+        if ra != rb:
+            parent[rb] = ra
+            size[ra] += size[rb]
+
+    links = [(y * w + x, (y + dy) * w + x + dx) for y in range(h) for x in range(w)
+             for dy, dx in ((0, 1), (1, 0)) if y + dy < h and x + dx < w]
+    for i, j in links:
+        if np.abs(img.reshape(-1, img.shape[2])[i] - img.reshape(-1, img.shape[2])[j]).max() <= tolerance:
+            union(i, j)
+    for i, j in links:
+        ri, rj = find(i), find(j)
+        if ri != rj and (size[ri] < min_size or size[rj] < min_size):
+            union(ri, rj)
+    first: dict[int, int] = {}
+    return np.array([first.setdefault(find(i), len(first)) for i in range(h * w)], np.int32).reshape(h, w)
+
+
+@pytest.mark.parametrize("tolerance, min_size", [(0.0, 1), (1.0, 1), (1.0, 4), (2.0, 10)])
+def test_label_regions_matches_its_definition(tolerance, min_size):
+    from stereocli.match.kernels.segment import label_regions
+
+    rng = np.random.default_rng(int(tolerance * 10) + min_size)
+    # Blocky colours (large components) plus noise of 0-2 levels (links that hold or break).
+    blocks = np.repeat(np.repeat(rng.integers(0, 4, (6, 8, 3)) * 10, 5, axis=0), 5, axis=1)
+    img = (blocks + rng.integers(0, 3, blocks.shape)).astype(np.float32)
+    np.testing.assert_array_equal(label_regions(img, tolerance, min_size),
+                                  _label_regions_reference(img, tolerance, min_size))
+
+
 @pytest.mark.parametrize("smoothing", ["bilateral", "mean_shift"])
 def test_segmentation_separates_colours_and_fits_each_plane(smoothing):
     h, w = 60, 80

@@ -90,6 +90,9 @@ def test_census_codes_match_reference():
     image = rng.integers(0, 6, (7, 30)).astype(np.float32)
     for step in (1, 3):
         np.testing.assert_array_equal(ksl.census_codes(image, 1, 2, step), census_reference(image, 1, 2, step))
+    # Narrower than the neighbour offsets: every column clamps on one side or both.
+    narrow = rng.integers(0, 6, (5, 3)).astype(np.float32)
+    np.testing.assert_array_equal(ksl.census_codes(narrow, 2, 3, 4), census_reference(narrow, 2, 3, 4))
 
 
 def test_fit_planes_matches_reference_and_recovers_planes():

@@ -75,9 +75,12 @@ def slanted_patchmatch(state: MatchState, p: SlantedPatchMatchParams) -> None:
                   float(p.prior), float(p.prior_cap))
         cost = ksl.plane_costs(pa, pb, pc, *window)
         lo, hi = float(state.min_disp), float(state.min_disp + state.ndisp - 1)
+        # Whether each pixel's plane changed in its last sweep: after the first iteration a pixel
+        # retries only the neighbours' planes that did (same result, fewer window costs).
+        changed = np.ones((h, w), np.bool_)
         for it in range(p.iterations):
             scale = 0.5 ** it
             for parity in (0, 1):
-                ksl.sweep(pa, pb, pc, cost, parity, int(p.seed) * 1009 + 2 * it + parity, p.shift * scale,
-                          p.slope * scale, int(p.samples), float(p.band), lo, hi, *window)
+                ksl.sweep(pa, pb, pc, cost, changed, it > 0, parity, int(p.seed) * 1009 + 2 * it + parity,
+                          p.shift * scale, p.slope * scale, int(p.samples), float(p.band), lo, hi, *window)
     state.disparity = ksl.plane_disparity(pa, pb, pc)

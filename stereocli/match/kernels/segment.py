@@ -37,25 +37,49 @@ def _union(parent: np.ndarray, size: np.ndarray, a: int, b: int) -> None:
     size[ra] += size[rb]
 
 
+@njit(cache=True, inline="always")
+def _similar(img, y: int, x: int, yy: int, xx: int, tolerance: float) -> bool:
+    # The largest channel difference of two pixels is within the tolerance.
+    diff = 0.0
+    for ch in range(img.shape[2]):
+        diff = max(diff, abs(img[y, x, ch] - img[yy, xx, ch]))
+    return diff <= tolerance
+
+
 @chunk_kernel
 def _label_regions_chunk(img, tolerance: float, min_size: int, labels, n_chunks: int, chunk: int) -> None:
-    """:func:`label_regions` into ``labels`` (a single chunk: the union-find runs serially)."""
-    h, w, c = img.shape
+    """:func:`label_regions` into ``labels`` (a single chunk: the union-find runs serially).
+
+    The components do not depend on the order of the unions, so the first pass joins each row's
+    runs of similar pixels directly (each pixel points at its run's first pixel) and unites runs
+    of neighbouring rows only where a vertical link starts a new pair of runs. The merge of small
+    components then visits, in raster order, only the links between two first-pass components
+    (the others join a component with itself)."""
+    h, w, _ = img.shape
     n = h * w
     parent = np.arange(n)
     size = np.ones(n, np.int64)
+    right = np.zeros((h, w), np.bool_)  # pixel linked to its right neighbour
     for y in range(h):
+        head = y * w
+        for x in range(w - 1):
+            right[y, x] = _similar(img, y, x, y, x + 1, tolerance)
+            if right[y, x]:
+                parent[y * w + x + 1] = head
+                size[head] += 1
+            else:
+                head = y * w + x + 1
+    for y in range(h - 1):
+        down_before = False  # pixel x − 1 linked to the pixel below it
         for x in range(w):
-            i = y * w + x
-            for dy, dx in ((0, 1), (1, 0)):
-                yy, xx = y + dy, x + dx
-                if yy >= h or xx >= w:
-                    continue
-                diff = 0.0
-                for ch in range(c):
-                    diff = max(diff, abs(img[y, x, ch] - img[yy, xx, ch]))
-                if diff <= tolerance:
-                    _union(parent, size, i, yy * w + xx)
+            down = _similar(img, y, x, y + 1, x, tolerance)
+            # The link at x − 1 joined the same two runs when both rows link x − 1 to x.
+            if down and not (down_before and right[y, x - 1] and right[y + 1, x - 1]):
+                _union(parent, size, y * w + x, (y + 1) * w + x)
+            down_before = down
+    first = np.empty(n, np.int64)  # each pixel's first-pass component (its root)
+    for i in range(n):
+        first[i] = _find(parent, i)
     for y in range(h):
         for x in range(w):
             i = y * w + x
@@ -64,14 +88,16 @@ def _label_regions_chunk(img, tolerance: float, min_size: int, labels, n_chunks:
                 if yy >= h or xx >= w:
                     continue
                 j = yy * w + xx
-                ra, rb = _find(parent, i), _find(parent, j)
+                if first[i] == first[j]:
+                    continue
+                ra, rb = _find(parent, first[i]), _find(parent, first[j])
                 if ra != rb and (size[ra] < min_size or size[rb] < min_size):
                     _union(parent, size, ra, rb)
     remap = np.full(n, -1, np.int64)
     nxt = 0
     for y in range(h):
         for x in range(w):
-            r = _find(parent, y * w + x)
+            r = _find(parent, first[y * w + x])
             if remap[r] < 0:
                 remap[r] = nxt
                 nxt += 1

@@ -27,20 +27,34 @@ def census_codes(image: np.ndarray, half_h: int, half_w: int, step: int) -> np.n
     h, w = image.shape
     out = np.zeros((h, w), np.uint64)
     for y in prange(h):
-        for x in range(w):
-            centre = image[y, x]
-            code = np.uint64(0)
-            bit = np.uint64(0)
-            for dy in range(-half_h, half_h + 1):
-                yy = min(max(y + dy, 0), h - 1)
-                for dx in range(-half_w, half_w + 1):
-                    if dy == 0 and dx == 0:
-                        continue
-                    xx = min(max(x + dx * step, 0), w - 1)
-                    if image[yy, xx] < centre:
-                        code |= np.uint64(1) << bit
-                    bit += np.uint64(1)
-            out[y, x] = code
+        centre = image[y]
+        code = out[y]
+        bit = np.uint64(0)
+        # One neighbour offset at a time over the whole row: the columns whose neighbour lies
+        # inside the image read a shifted row (a loop that vectorises), the few others clamp.
+        for dy in range(-half_h, half_h + 1):
+            row = image[min(max(y + dy, 0), h - 1)]
+            for dx in range(-half_w, half_w + 1):
+                if dy == 0 and dx == 0:
+                    continue
+                off = dx * step
+                inner_lo = min(max(-off, 0), w)
+                inner_hi = max(min(w - off, w), inner_lo)
+                for x in range(inner_lo):
+                    if row[min(max(x + off, 0), w - 1)] < centre[x]:
+                        code[x] |= np.uint64(1) << bit
+                # 1-D slices and an all-ones/zero mask: LLVM vectorises this form (20x faster
+                # than a shifted comparison result or a branch).
+                mask = np.uint64(1) << bit
+                shifted = row[inner_lo + off:inner_hi + off]
+                centres = centre[inner_lo:inner_hi]
+                codes = code[inner_lo:inner_hi]
+                for i in range(inner_hi - inner_lo):
+                    codes[i] = codes[i] | (mask & (np.uint64(0) - np.uint64(shifted[i] < centres[i])))
+                for x in range(inner_hi, w):
+                    if row[min(max(x + off, 0), w - 1)] < centre[x]:
+                        code[x] |= np.uint64(1) << bit
+                bit += np.uint64(1)
     return out
 
 
@@ -156,15 +170,21 @@ NEIGHBOURS = np.array([[0, -1], [0, 1], [-1, 0], [1, 0]], np.int64)
 
 
 @njit(cache=True, parallel=prange_only())
-def sweep(pa, pb, pc, cost, parity: int, seed: int, shift: float, slope: float, samples: int, band: float,
-          lo: float, hi: float, codes_left, codes_right, guide, weights, prior, up: int, radius: int, stride: int,
-          tau: float, lam: float, cap: float) -> None:
+def sweep(pa, pb, pc, cost, changed, only_changed: bool, parity: int, seed: int, shift: float, slope: float,
+          samples: int, band: float, lo: float, hi: float, codes_left, codes_right, guide, weights, prior, up: int,
+          radius: int, stride: int, tau: float, lam: float, cap: float) -> None:
     """One half-iteration of red-black PatchMatch, in place: every pixel with
     ``(x + y) % 2 == parity`` tries its four neighbours' planes (which have the other parity,
     so no pixel reads a plane written in the same sweep and the result does not depend on the
     thread count), then ``samples`` random perturbations of its best plane (disparity at the
     pixel ±``shift``, slopes ±``slope``), and keeps the cheapest. A plane is only tried when
-    its disparity at the pixel lies in ``[lo, hi]`` and within ``band`` px of ``prior``."""
+    its disparity at the pixel lies in ``[lo, hi]`` and within ``band`` px of ``prior``.
+
+    ``changed`` (H, W) bool records whether each pixel's plane changed in its last sweep. With
+    ``only_changed`` (every sweep after a pixel's first) a neighbour's plane is tried only if
+    it changed in the neighbour's last sweep: an unchanged one is the plane the pixel tried last
+    time, whose cost has not changed and did not beat the pixel's plane then (the plane a pixel
+    keeps only gets cheaper), so the result is the same as trying it again."""
     h, w = pa.shape
     for y in prange(h):
         for x in range((y + parity) % 2, w, 2):
@@ -176,6 +196,8 @@ def sweep(pa, pb, pc, cost, parity: int, seed: int, shift: float, slope: float, 
                 yy = y + NEIGHBOURS[n, 0]
                 xx = x + NEIGHBOURS[n, 1]
                 if yy < 0 or yy >= h or xx < 0 or xx >= w:
+                    continue
+                if only_changed and not changed[yy, xx]:
                     continue
                 a, b, c = pa[yy, xx], pb[yy, xx], pc[yy, xx]
                 if not np.isfinite(c) or (a == ba and b == bb and c == bc):
@@ -198,6 +220,7 @@ def sweep(pa, pb, pc, cost, parity: int, seed: int, shift: float, slope: float, 
                                 tau, lam, cap)
                 if cc < best:
                     ba, bb, bc, best = a, b, c, cc
+            changed[y, x] = ba != pa[y, x] or bb != pb[y, x] or bc != pc[y, x]
             pa[y, x], pb[y, x], pc[y, x], cost[y, x] = ba, bb, bc, best
 
 
