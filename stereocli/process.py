@@ -133,9 +133,9 @@ class _CompileWatch:
 def notify_compilation(notice) -> None:
     """Call ``notice()`` when this process next compiles a kernel (a cache miss: the first run
     after installing, a preset or input type not compiled before), so the command line can say
-    why it is slow, once, or at each compile until ``notice()`` returns something false if it
-    returns True (it waits for a later moment); ``None`` stops watching. Needs
-    :func:`prepare_kernels` (or numba already started)."""
+    why it is slow. It is called once, unless it returns True: then again at the next compile
+    (it waits for a later moment). ``None`` stops watching. Needs :func:`prepare_kernels` (or
+    numba already started)."""
     _CompileWatch.notice = notice
     if notice is not None and "numba.np.arraymath" in sys.modules:
         _watch_compilation()

@@ -136,7 +136,7 @@ def test_kernels_built_ahead_of_time_give_the_same_maps_as_the_jit(monkeypatch, 
 def test_a_build_for_other_sources_another_cpu_damaged_or_none_is_not_used(monkeypatch, built, tmp_path):
     monkeypatch.setenv("STEREOCLI_AOT_DIR", str(built))
     monkeypatch.delenv("STEREOCLI_AOT", raising=False)
-    assert aot._load_table()  # the fixture's build is used as it is
+    assert aot._usable_build()[0]  # the fixture's build is used as it is
     manifest = json.loads((built / aot.MANIFEST).read_text())
     for key, value in (("sources", "0" * 16), ("cpu", "another"), ("numpy", "0")):
         changed = tmp_path / key
@@ -146,9 +146,9 @@ def test_a_build_for_other_sources_another_cpu_damaged_or_none_is_not_used(monke
         (changed / aot.MANIFEST).unlink()
         (changed / aot.MANIFEST).write_text(json.dumps({**manifest, key: value}))
         monkeypatch.setenv("STEREOCLI_AOT_DIR", str(changed))
-        assert aot._load_table() == {}, key
+        assert aot._usable_build()[0] == {}, key
     monkeypatch.setenv("STEREOCLI_AOT_DIR", str(tmp_path / "empty"))
-    assert aot._load_table() == {}
+    assert aot._usable_build()[0] == {}
     # A damaged build: a module missing, or one that does not load.
     for damage in ("missing", "garbage"):
         damaged = tmp_path / damage
@@ -160,10 +160,10 @@ def test_a_build_for_other_sources_another_cpu_damaged_or_none_is_not_used(monke
         if damage == "garbage":
             (damaged / modules[0].name).write_bytes(b"not a shared library")
         monkeypatch.setenv("STEREOCLI_AOT_DIR", str(damaged))
-        assert aot._load_table() == {}, damage
+        assert aot._usable_build()[0] == {}, damage
     monkeypatch.setenv("STEREOCLI_AOT_DIR", str(built))
     monkeypatch.setenv("STEREOCLI_AOT", "0")
-    assert aot._load_table() == {}
+    assert aot._usable_build()[0] == {}
 
 
 @pytest.mark.slow

@@ -146,18 +146,13 @@ def _loaded_table() -> dict:
     """The table of the built folder, loaded on first use (once per process)."""
     with _table_lock:  # threads of a Dask worker may match pairs at once
         if _table[0] is None:
-            _table[0] = _load_table()
+            _table[0], _why_not[0] = _usable_build()
         return _table[0]
 
 
-def _load_table() -> dict:
-    """``{python function: {argument types: compiled function}}`` of the built folder, if usable
-    (else ``{}``, with the reason in ``_why_not``)."""
-    table, _why_not[0] = _usable_build()
-    return table
-
-
 def _usable_build() -> tuple[dict, str]:
+    """``({python function: {argument types: compiled function}}, "")`` of the built folder if
+    it is usable, else ``({}, why not)``."""
     if os.environ.get("STEREOCLI_AOT", "1") == "0":
         return {}, "STEREOCLI_AOT=0"
     folder = Path(os.environ.get("STEREOCLI_AOT_DIR") or BUILD_DIR)
