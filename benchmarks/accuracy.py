@@ -278,7 +278,9 @@ def main(argv=None) -> int:
     only = set(filter(None, args.scenes.split(","))) or None
     scenes = load_scenes(args.data, args.datasets.split(","), only)
     presets = [p for p in args.presets.split(",") if p]
-    configs = {p: build_config([p], args.sets) for p in presets}
+    # The matcher sets its kernel threads from the config's runtime.threads on every call.
+    sets = [*args.sets, f"runtime.threads={args.threads}"] if args.threads else args.sets
+    configs = {p: build_config([p], sets) for p in presets}
     methods: dict[str, callable] = {}
     for p, cfg in configs.items():
         methods[f"stereocli {p}"] = lambda s, cfg=cfg: match_pair(s.left, s.right, cfg, ndisp=s.ndisp).disparity

@@ -87,7 +87,8 @@ def main(argv=None) -> int:
     numba.set_num_threads(args.threads)
     set_kernel_threads(args.threads)
     presets = [p for p in args.presets.split(",") if p]
-    configs = {p: build_config([p], []) for p in presets}
+    # The matcher sets its kernel threads from the config's runtime.threads on every call.
+    configs = {p: build_config([p], [f"runtime.threads={args.threads}"]) for p in presets}
     scenes = load_scenes(args.data, args.datasets.split(","), set(filter(None, args.scenes.split(","))))
     print(f"{args.threads} threads, best of {args.repeat} per stage; ms per pair\n")
     for scene in scenes:

@@ -66,6 +66,24 @@ def test_row_alignment_of_a_rectified_and_a_shifted_pair():
     assert "5." in shifted.describe()
 
 
+def test_ransac_draws_three_distinct_matches_uniformly():
+    from collections import Counter
+
+    from stereocli.features.alignment import _distinct_triples
+
+    draws = _distinct_triples(np.random.default_rng(1), 5, 100_000)
+    assert draws.min() == 0 and draws.max() == 4
+    assert (draws[:, 0] != draws[:, 1]).all() and (draws[:, 0] != draws[:, 2]).all()
+    assert (draws[:, 1] != draws[:, 2]).all()
+    # Each of the 10 sets of three is drawn 10,000 times in expectation (σ ≈ 95), and each
+    # index in each position 20,000 times.
+    sets = Counter(tuple(sorted(row)) for row in draws.tolist())
+    assert len(sets) == 10 and all(9_500 < n < 10_500 for n in sets.values())
+    for position in range(3):
+        assert all(19_300 < n < 20_700 for n in np.bincount(draws[:, position], minlength=5))
+    assert (np.sort(_distinct_triples(np.random.default_rng(1), 3, 50), axis=1) == [0, 1, 2]).all()  # n = 3
+
+
 def test_too_few_matches_is_not_a_verdict():
     flat = np.full((60, 80), 10.0, np.float32)
     result = row_alignment(match_points(flat, flat))

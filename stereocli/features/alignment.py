@@ -96,7 +96,7 @@ def _ransac_plane(points: np.ndarray, dy: np.ndarray) -> np.ndarray:
     scale = np.array([max(1.0, np.abs(points[:, 0]).max()), max(1.0, np.abs(points[:, 1]).max()), 1.0])
     design = np.column_stack([points, np.ones(len(points))]) / scale
     rng = np.random.default_rng(0)
-    samples = np.array([rng.choice(len(dy), 3, replace=False) for _ in range(DRAWS)])
+    samples = _distinct_triples(rng, len(dy), DRAWS)
     # Every draw's plane at once (a stack of 3x3 systems); with a degenerate draw (three
     # collinear points: no plane) among them, draw by draw, skipping those.
     try:
@@ -116,3 +116,17 @@ def _ransac_plane(points: np.ndarray, dy: np.ndarray) -> np.ndarray:
     if inliers.sum() >= 3:
         best, *_ = np.linalg.lstsq(design[inliers], dy[inliers], rcond=None)
     return best / scale
+
+
+def _distinct_triples(rng: np.random.Generator, n: int, count: int) -> np.ndarray:
+    """(count, 3) int64: ``count`` draws of three distinct indices in ``[0, n)`` (n ≥ 3), each
+    triple uniform. The second index is drawn from the n − 1 others and the third from the
+    n − 2 left, each shifted past the ones taken: all draws at once, not one call per draw."""
+    first = rng.integers(0, n, count)
+    second = rng.integers(0, n - 1, count)
+    second += second >= first
+    low, high = np.minimum(first, second), np.maximum(first, second)
+    third = rng.integers(0, n - 2, count)
+    third += third >= low
+    third += third >= high
+    return np.stack([first, second, third], axis=1)

@@ -1,6 +1,8 @@
 """Sparse point matches between the two views: distinctive ORB features, refined to sub-pixel.
 
-ORB corners (Rublee et al. 2011; ``method="orb"``, the default: fast) or SIFT blobs (Lowe 2004;
+ORB corners (Rublee et al. 2011; ``method="orb"``, the default: fast; detected at one scale, as
+the two views of a stereo pair share theirs, which finds more matches in less time than a
+pyramid) or SIFT blobs (Lowe 2004;
 ``method="sift"``: slower, more and steadier matches under rotation and scale, used to
 estimate epipolar geometry) are matched by their descriptors; a match is kept when
 it is mutual (each point is the other's best) and distinctive (Lowe's ratio test: clearly
@@ -52,6 +54,9 @@ class PointMatches:
 def grey_uint8(image: np.ndarray) -> np.ndarray:
     """(H, W) uint8 grey of an (H, W) or (H, W, 3) RGB image (uint8, uint16 or float in [0, 255])."""
     img = np.asarray(image)
+    if img.ndim == 3 and img.dtype == np.uint8:
+        # The same weights in OpenCV's fixed point: a tenth of the time of the float product.
+        return cv2.cvtColor(np.ascontiguousarray(img[..., :3]), cv2.COLOR_RGB2GRAY)
     if img.ndim == 3:
         img = img[..., :3].astype(np.float32) @ np.float32([0.299, 0.587, 0.114])
     if img.dtype == np.uint16:
@@ -68,7 +73,7 @@ def _mask(valid: np.ndarray | None) -> np.ndarray | None:
 
 #: Feature detectors of :func:`match_points`: (constructor, descriptor norm).
 METHODS = {
-    "orb": (lambda n: cv2.ORB_create(nfeatures=n, scaleFactor=1.3, nlevels=4, fastThreshold=10), cv2.NORM_HAMMING),
+    "orb": (lambda n: cv2.ORB_create(nfeatures=n, nlevels=1, fastThreshold=10), cv2.NORM_HAMMING),
     "sift": (lambda n: cv2.SIFT_create(nfeatures=n), cv2.NORM_L2),
 }
 
