@@ -1,5 +1,5 @@
-"""Build step of ``pip install``: the numba kernels of the usual presets (default, fast, accurate,
-realtime) compiled ahead of time into the package (``stereocli/match/kernels/aot.py``), so that
+"""Build step of ``pip install``: the numba kernels of the ladder's presets (default, fast, accurate,
+realtime, quality) compiled ahead of time into the package (``stereocli/match/kernels/aot.py``), so that
 a ``stereocli`` process loads them as extension modules instead of starting numba's JIT, and
 the first run of those presets compiles nothing. The project's metadata is in
 ``pyproject.toml``.
@@ -37,8 +37,8 @@ class BuildWithKernels(build_py):
         try:
             from stereocli.match.kernels import aot
 
-            print(f"stereocli: compiling the usual presets' kernels ahead of time into {root / KERNELS / '_aot'} "
-                  "(about 35 s on two cores)", flush=True)
+            print(f"stereocli: compiling the presets' kernels ahead of time into {root / KERNELS / '_aot'} "
+                  "(about 45 s on two cores)", flush=True)
             seconds = aot.build(root / KERNELS / "_aot", log=lambda line: print(line, flush=True))
             print(f"stereocli: kernels compiled in {seconds:.0f} s", flush=True)
         except Exception as exc:  # noqa: BLE001 - the install goes on; the kernels compile on first use

@@ -60,7 +60,7 @@ def _maps(monkeypatch, folder: Path | None) -> tuple[list[np.ndarray], dict]:
 
 
 #: The presets whose kernels the build holds.
-BUILT_PRESETS = ("default", "fast", "accurate", "realtime")
+BUILT_PRESETS = ("default", "fast", "accurate", "realtime", "quality")
 
 
 def _default_runs() -> list[np.ndarray]:

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import njit, prange, prange_only
+from . import chunk_kernel, for_rows, njit
 from .census import _popcount64
 
 
@@ -27,16 +27,11 @@ def _census_clamped(row, centre, code, off: int, mask, x0: int, x1: int) -> None
             code[x] |= mask
 
 
-@njit(cache=True, parallel=prange_only())
-def census_codes(image: np.ndarray, half_h: int, half_w: int, step: int) -> np.ndarray:
-    """(H, W) uint64 census codes: bit set where the neighbour ``(dy, dx·step)`` is darker than
-    the centre, for ``|dy| <= half_h``, ``|dx| <= half_w`` (centre skipped, borders clamped).
-
-    ``step`` is the column spacing of one pixel: 1 on the left image, ``up`` on the right image
-    upsampled ``up`` times along rows, so both codes compare the same neighbourhood."""
+@chunk_kernel
+def _census_codes_rows(image, half_h: int, half_w: int, step: int, out, y0: int, y1: int) -> None:
+    """:func:`census_codes` of rows ``[y0, y1)``, written into ``out`` (zeros)."""
     h, w = image.shape
-    out = np.zeros((h, w), np.uint64)
-    for y in prange(h):
+    for y in range(y0, y1):
         centre = image[y]
         code = out[y]
         bit = np.uint64(0)
@@ -61,24 +56,25 @@ def census_codes(image: np.ndarray, half_h: int, half_w: int, step: int) -> np.n
                     codes[i] = codes[i] | (mask & (np.uint64(0) - np.uint64(shifted[i] < centres[i])))
                 _census_clamped(row, centre, code, off, mask, inner_hi, w)
                 bit += np.uint64(1)
+
+
+def census_codes(image: np.ndarray, half_h: int, half_w: int, step: int) -> np.ndarray:
+    """(H, W) uint64 census codes: bit set where the neighbour ``(dy, dx·step)`` is darker than
+    the centre, for ``|dy| <= half_h``, ``|dx| <= half_w`` (centre skipped, borders clamped).
+
+    ``step`` is the column spacing of one pixel: 1 on the left image, ``up`` on the right image
+    upsampled ``up`` times along rows, so both codes compare the same neighbourhood."""
+    out = np.zeros(image.shape, np.uint64)
+    for_rows(_census_codes_rows, image.shape[0], image, int(half_h), int(half_w), int(step), out)
     return out
 
 
-@njit(cache=True, parallel=prange_only())
-def fit_planes(disp: np.ndarray, guide: np.ndarray, radius: int, weights: np.ndarray, gate: float, band: float):
-    """Each valid pixel's plane: weighted least squares through the neighbours within
-    ``radius`` px whose disparity is within ``gate`` px of its own, weight
-    ``weights[|guide_q − guide_p|]`` (``guide``: int grey levels).
-
-    Returns (H, W) float64 ``a``, ``b``, ``c`` (``d = a·x + b·y + c``); a pixel whose
-    neighbours do not fix a plane (a line of them, or too few) gets the fronto-parallel plane
-    through its own disparity, and an invalid pixel ``a = b = 0``, ``c = +inf``. The plane's
-    value at the pixel is clamped to within ``band`` px of its input disparity."""
+@chunk_kernel
+def _fit_planes_rows(disp, guide, radius: int, weights, gate: float, band: float, pa, pb, pc, y0: int,
+                     y1: int) -> None:
+    """:func:`fit_planes` of rows ``[y0, y1)``, written into ``pa``, ``pb`` (zeros) and ``pc``."""
     h, w = disp.shape
-    pa = np.zeros((h, w), np.float64)
-    pb = np.zeros((h, w), np.float64)
-    pc = np.empty((h, w), np.float64)
-    for y in prange(h):
+    for y in range(y0, y1):
         for x in range(w):
             d0 = disp[y, x]
             pc[y, x] = d0
@@ -113,6 +109,22 @@ def fit_planes(disp: np.ndarray, guide: np.ndarray, radius: int, weights: np.nda
             pa[y, x] = a
             pb[y, x] = b
             pc[y, x] = d0 + min(max(c, -band), band) - a * x - b * y
+
+
+def fit_planes(disp: np.ndarray, guide: np.ndarray, radius: int, weights: np.ndarray, gate: float, band: float):
+    """Each valid pixel's plane: weighted least squares through the neighbours within
+    ``radius`` px whose disparity is within ``gate`` px of its own, weight
+    ``weights[|guide_q − guide_p|]`` (``guide``: int grey levels).
+
+    Returns (H, W) float64 ``a``, ``b``, ``c`` (``d = a·x + b·y + c``); a pixel whose
+    neighbours do not fix a plane (a line of them, or too few) gets the fronto-parallel plane
+    through its own disparity, and an invalid pixel ``a = b = 0``, ``c = +inf``. The plane's
+    value at the pixel is clamped to within ``band`` px of its input disparity."""
+    h, w = disp.shape
+    pa = np.zeros((h, w), np.float64)
+    pb = np.zeros((h, w), np.float64)
+    pc = np.empty((h, w), np.float64)
+    for_rows(_fit_planes_rows, h, disp, guide, int(radius), weights, float(gate), float(band), pa, pb, pc)
     return pa, pb, pc
 
 
@@ -147,17 +159,24 @@ def plane_cost(y: int, x: int, a: float, b: float, c: float, codes_left, codes_r
     return total / wsum
 
 
-@njit(cache=True, parallel=prange_only())
-def plane_costs(pa, pb, pc, codes_left, codes_right, guide, weights, prior, up: int, radius: int, stride: int,
-                tau: float, lam: float, cap: float) -> np.ndarray:
-    """(H, W) float64 :func:`plane_cost` of every pixel's own plane (+inf where ``pc`` is not finite)."""
-    h, w = pa.shape
-    out = np.full((h, w), np.inf)
-    for y in prange(h):
+@chunk_kernel
+def _plane_costs_rows(pa, pb, pc, codes_left, codes_right, guide, weights, prior, up: int, radius: int, stride: int,
+                      tau: float, lam: float, cap: float, out, y0: int, y1: int) -> None:
+    """:func:`plane_costs` of rows ``[y0, y1)``, written into ``out`` (+inf)."""
+    w = pa.shape[1]
+    for y in range(y0, y1):
         for x in range(w):
             if np.isfinite(pc[y, x]):
                 out[y, x] = plane_cost(y, x, pa[y, x], pb[y, x], pc[y, x], codes_left, codes_right, guide, weights,
                                        prior, up, radius, stride, tau, lam, cap)
+
+
+def plane_costs(pa, pb, pc, codes_left, codes_right, guide, weights, prior, up: int, radius: int, stride: int,
+                tau: float, lam: float, cap: float) -> np.ndarray:
+    """(H, W) float64 :func:`plane_cost` of every pixel's own plane (+inf where ``pc`` is not finite)."""
+    out = np.full(pa.shape, np.inf)
+    for_rows(_plane_costs_rows, pa.shape[0], pa, pb, pc, codes_left, codes_right, guide, weights, prior, int(up),
+             int(radius), int(stride), float(tau), float(lam), float(cap), out)
     return out
 
 
@@ -175,24 +194,13 @@ def _uniform(seed: int, y: int, x: int, k: int) -> float:
 NEIGHBOURS = np.array([[0, -1], [0, 1], [-1, 0], [1, 0]], np.int64)
 
 
-@njit(cache=True, parallel=prange_only())
-def sweep(pa, pb, pc, cost, changed, only_changed: bool, parity: int, seed: int, shift: float, slope: float,
-          samples: int, band: float, lo: float, hi: float, codes_left, codes_right, guide, weights, prior, up: int,
-          radius: int, stride: int, tau: float, lam: float, cap: float) -> None:
-    """One half-iteration of red-black PatchMatch, in place: every pixel with
-    ``(x + y) % 2 == parity`` tries its four neighbours' planes (which have the other parity,
-    so no pixel reads a plane written in the same sweep and the result does not depend on the
-    thread count), then ``samples`` random perturbations of its best plane (disparity at the
-    pixel ±``shift``, slopes ±``slope``), and keeps the cheapest. A plane is only tried when
-    its disparity at the pixel lies in ``[lo, hi]`` and within ``band`` px of ``prior``.
-
-    ``changed`` (H, W) bool records whether each pixel's plane changed in its last sweep. With
-    ``only_changed`` (every sweep after a pixel's first) a neighbour's plane is tried only if
-    it changed in the neighbour's last sweep: an unchanged one is the plane the pixel tried last
-    time, whose cost has not changed and did not beat the pixel's plane then (the plane a pixel
-    keeps only gets cheaper), so the result is the same as trying it again."""
+@chunk_kernel
+def _sweep_rows(pa, pb, pc, cost, changed, only_changed: bool, parity: int, seed: int, shift: float, slope: float,
+                samples: int, band: float, lo: float, hi: float, codes_left, codes_right, guide, weights, prior,
+                up: int, radius: int, stride: int, tau: float, lam: float, cap: float, y0: int, y1: int) -> None:
+    """:func:`sweep` of rows ``[y0, y1)``."""
     h, w = pa.shape
-    for y in prange(h):
+    for y in range(y0, y1):
         for x in range((y + parity) % 2, w, 2):
             if not np.isfinite(pc[y, x]):
                 continue
@@ -230,12 +238,37 @@ def sweep(pa, pb, pc, cost, changed, only_changed: bool, parity: int, seed: int,
             pa[y, x], pb[y, x], pc[y, x], cost[y, x] = ba, bb, bc, best
 
 
-@njit(cache=True, parallel=prange_only())
-def plane_disparity(pa, pb, pc) -> np.ndarray:
-    """(H, W) float32 disparity of every pixel's own plane at the pixel (+inf where ``pc`` is)."""
-    h, w = pa.shape
-    out = np.empty((h, w), np.float32)
-    for y in prange(h):
+def sweep(pa, pb, pc, cost, changed, only_changed: bool, parity: int, seed: int, shift: float, slope: float,
+          samples: int, band: float, lo: float, hi: float, codes_left, codes_right, guide, weights, prior, up: int,
+          radius: int, stride: int, tau: float, lam: float, cap: float) -> None:
+    """One half-iteration of red-black PatchMatch, in place: every pixel with
+    ``(x + y) % 2 == parity`` tries its four neighbours' planes (which have the other parity,
+    so no pixel reads a plane written in the same sweep and the result does not depend on the
+    thread count), then ``samples`` random perturbations of its best plane (disparity at the
+    pixel ±``shift``, slopes ±``slope``), and keeps the cheapest. A plane is only tried when
+    its disparity at the pixel lies in ``[lo, hi]`` and within ``band`` px of ``prior``.
+
+    ``changed`` (H, W) bool records whether each pixel's plane changed in its last sweep. With
+    ``only_changed`` (every sweep after a pixel's first) a neighbour's plane is tried only if
+    it changed in the neighbour's last sweep: an unchanged one is the plane the pixel tried last
+    time, whose cost has not changed and did not beat the pixel's plane then (the plane a pixel
+    keeps only gets cheaper), so the result is the same as trying it again."""
+    for_rows(_sweep_rows, pa.shape[0], pa, pb, pc, cost, changed, bool(only_changed), int(parity), int(seed),
+             float(shift), float(slope), int(samples), float(band), float(lo), float(hi), codes_left, codes_right,
+             guide, weights, prior, int(up), int(radius), int(stride), float(tau), float(lam), float(cap))
+
+
+@chunk_kernel
+def _plane_disparity_rows(pa, pb, pc, out, y0: int, y1: int) -> None:
+    """:func:`plane_disparity` of rows ``[y0, y1)``, written into ``out``."""
+    w = pa.shape[1]
+    for y in range(y0, y1):
         for x in range(w):
             out[y, x] = pa[y, x] * x + pb[y, x] * y + pc[y, x]
+
+
+def plane_disparity(pa, pb, pc) -> np.ndarray:
+    """(H, W) float32 disparity of every pixel's own plane at the pixel (+inf where ``pc`` is)."""
+    out = np.empty(pa.shape, np.float32)
+    for_rows(_plane_disparity_rows, pa.shape[0], pa, pb, pc, out)
     return out
