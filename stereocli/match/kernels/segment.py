@@ -668,40 +668,47 @@ _RESCALE_BELOW = 1e-30
 
 
 @njit(cache=True, inline="always")
-def _running_add(kk, mm, ss, n: int, last: int, k: int, m: float, s: float):
+def _running_add(kk, mm, ss, entry, n: int, k: int, m: float, s: float) -> int:
     """Add scaled mass ``m`` and disparity sum ``s`` to bin ``k`` of a running vote of
     ``n`` entries (at most ``kk.shape[0]``; a new bin then replaces the one with the least
-    mass). ``last`` is the entry used last (neighbours mostly share a bin). Returns
-    ``(n, entry used)``."""
-    if last < n and kk[last] == k:
-        mm[last] += m
-        ss[last] += s
-        return n, last
-    for j in range(n):
-        if kk[j] == k:
-            mm[j] += m
-            ss[j] += s
-            return n, j
+    mass). ``entry[bin]`` is the entry holding each kept bin, −1 for the others: one lookup
+    instead of a search (a bin changes every few pixels along a line, and the search's
+    branches were most of the vote's time). Returns the new ``n``."""
+    j = entry[k]
+    if j >= 0:
+        mm[j] += m
+        ss[j] += s
+        return n
     if n < kk.shape[0]:
         kk[n] = k
         mm[n] = m
         ss[n] = s
-        return n + 1, n
+        entry[k] = n
+        return n + 1
     weakest = 0
     for j in range(1, n):
         if mm[j] < mm[weakest]:
             weakest = j
+    entry[kk[weakest]] = -1
     kk[weakest] = k
     mm[weakest] = m
     ss[weakest] = s
-    return n, weakest
+    entry[k] = weakest
+    return n
+
+
+@njit(cache=True, inline="always")
+def _forget_bins(kk, entry, n: int) -> None:
+    # Before a running vote restarts empty: its kept bins leave the entry map.
+    for j in range(n):
+        entry[kk[j]] = -1
 
 
 @njit(cache=True, inline="always")
 def _empty_vote():
-    # A running vote with no votes yet: ``(n, last, scale, run_k, run_m, run_s)`` (no kept
-    # bins, no run, stored values equal to true ones).
-    return 0, 0, 1.0, -1, 0.0, 0.0
+    # A running vote with no votes yet: ``(n, scale, run_k, run_m, run_s)`` (no kept bins, no
+    # run, stored values equal to true ones).
+    return 0, 1.0, -1, 0.0, 0.0
 
 
 @njit(cache=True, inline="always")
@@ -721,20 +728,20 @@ def _decay_vote(mm, ss, n: int, scale: float, run_m: float, run_s: float, weight
 
 
 @njit(cache=True, inline="always")
-def _add_vote(kk, mm, ss, n: int, last: int, scale: float, run_k: int, run_m: float, run_s: float, k: int, d: float):
+def _add_vote(kk, mm, ss, entry, n: int, scale: float, run_k: int, run_m: float, run_s: float, k: int, d: float):
     """Add a pixel's vote (bin ``k``, disparity ``d``): to the run when it continues it, else
     the run joins the kept bins and a new run starts (``k`` < 0: end the run only). Returns
-    ``(n, last, run_k, run_m, run_s)``."""
+    ``(n, run_k, run_m, run_s)``."""
     if k != run_k:
         if run_k >= 0:
-            n, last = _running_add(kk, mm, ss, n, last, run_k, run_m / scale, run_s / scale)
+            n = _running_add(kk, mm, ss, entry, n, run_k, run_m / scale, run_s / scale)
         run_k = k
         run_m = 0.0
         run_s = 0.0
     if k >= 0:
         run_m += 1.0
         run_s += d
-    return n, last, run_k, run_m, run_s
+    return n, run_k, run_m, run_s
 
 
 @njit(cache=True, inline="always")
@@ -770,6 +777,8 @@ def _vote_chunk(disp, bins, packed, centre, passed, min_change: int, max_bins: i
     fs = np.empty((n_pos, max_bins + 1), np.float64)
     fn = np.zeros(n_pos, np.int64)
     kk = np.empty(max_bins, np.int32)
+    entry = np.full(n_bins, -1, np.int32)  # the entry of kk holding each bin, -1 if none
+    n = 0
     mm = np.empty(max_bins, np.float64)  # masses and disparity sums, stored divided by ``scale``
     ss = np.empty(max_bins, np.float64)
     # A decision's candidates: mass and disparity sum by bin (zero between decisions) and
@@ -816,14 +825,15 @@ def _vote_chunk(disp, bins, packed, centre, passed, min_change: int, max_bins: i
             # is one multiplication of ``scale``.
             # Votes beyond the last centre never reach a decision in this direction (nor, in
             # the backward pass, votes before the first), so each pass stops there.
-            n, last, scale, run_k, run_m, run_s = _empty_vote()
+            _forget_bins(kk, entry, n)
+            n, scale, run_k, run_m, run_s = _empty_vote()
             ci = 0
             for p in range(centres[n_centres - 1] + 1):
                 if p > 0:
                     decay[p] = passed[_packed_distance(p_line[p], p_line[p - 1])]  # kept for the backward pass
                     scale, run_m, run_s = _decay_vote(mm, ss, n, scale, run_m, run_s, decay[p])
                 if ci < n_centres and centres[ci] == p:
-                    n, last, run_k, run_m, run_s = _add_vote(kk, mm, ss, n, last, scale, run_k, run_m, run_s, -1, 0.0)
+                    n, run_k, run_m, run_s = _add_vote(kk, mm, ss, entry, n, scale, run_k, run_m, run_s, -1, 0.0)
                     for i in range(n):
                         fk[ci, i] = kk[i]
                         fm[ci, i] = mm[i] * scale
@@ -832,10 +842,11 @@ def _vote_chunk(disp, bins, packed, centre, passed, min_change: int, max_bins: i
                     ci += 1
                 k = b_line[p]
                 if k >= 0:
-                    n, last, run_k, run_m, run_s = _add_vote(kk, mm, ss, n, last, scale, run_k, run_m, run_s, k,
+                    n, run_k, run_m, run_s = _add_vote(kk, mm, ss, entry, n, scale, run_k, run_m, run_s, k,
                                                              d_line[p])
             # Backward, deciding each centre from its own vote and both running votes.
-            n, last, scale, run_k, run_m, run_s = _empty_vote()
+            _forget_bins(kk, entry, n)
+            n, scale, run_k, run_m, run_s = _empty_vote()
             ci = n_centres - 1
             for p in range(n_pos - 1, centres[0] - 1, -1):
                 if p < n_pos - 1:
@@ -845,7 +856,7 @@ def _vote_chunk(disp, bins, packed, centre, passed, min_change: int, max_bins: i
                 k = b_line[p]
                 d = d_line[p]
                 if ci >= 0 and centres[ci] == p:
-                    n, last, run_k, run_m, run_s = _add_vote(kk, mm, ss, n, last, scale, run_k, run_m, run_s, -1, 0.0)
+                    n, run_k, run_m, run_s = _add_vote(kk, mm, ss, entry, n, scale, run_k, run_m, run_s, -1, 0.0)
                     # Own vote, then the forward and the backward running votes.
                     cn = _add_candidate(cand_m, cand_s, seen, touched, 0, k, 1.0, d)
                     for i in range(fn[ci]):
@@ -870,7 +881,7 @@ def _vote_chunk(disp, bins, packed, centre, passed, min_change: int, max_bins: i
                         seen[b] = False
                     ci -= 1
                 if k >= 0:
-                    n, last, run_k, run_m, run_s = _add_vote(kk, mm, ss, n, last, scale, run_k, run_m, run_s, k, d)
+                    n, run_k, run_m, run_s = _add_vote(kk, mm, ss, entry, n, scale, run_k, run_m, run_s, k, d)
 
 
 def geodesic_vote_line(disp, bins, packed, centre, passed, min_change: int, max_bins: int, n_bins: int,
