@@ -71,6 +71,19 @@ def test_fit_recovers_plane_despite_outliers_and_holes(method):
     assert err[~out].max() < 0.25  # inliers untouched, the hole filled by the plane
 
 
+def test_pixels_by_segment_is_a_stable_sort_of_the_labels():
+    from stereocli.match.kernels.segment import pixels_by_segment
+
+    rng = np.random.default_rng(4)
+    labels = rng.integers(0, 9, (23, 31)).astype(np.int32)
+    labels[labels == 5] = 4  # a label with no pixel
+    order, starts, counts = pixels_by_segment(labels)
+    np.testing.assert_array_equal(order, np.argsort(labels.ravel(), kind="stable"))
+    np.testing.assert_array_equal(counts, np.bincount(labels.ravel(), minlength=9))
+    np.testing.assert_array_equal(starts, np.concatenate(([0], np.cumsum(counts))))
+    assert counts[5] == 0 and starts[5] == starts[6]
+
+
 def test_ransac_is_reproducible_with_a_seed():
     rng = np.random.default_rng(2)
     disp = rng.uniform(0, 20, (40, 50)).astype(np.float32)

@@ -224,12 +224,9 @@ def segment_image(image: np.ndarray, spatial_radius: int, colour_radius: float, 
 
 def fit_segment_planes(disp: np.ndarray, labels: np.ndarray, p: PlaneFitParams):
     """Planes per segment (see :func:`stereocli.match.kernels.segment.fit_planes`)."""
-    flat = labels.ravel()
-    order = np.argsort(flat, kind="stable")
-    counts = np.bincount(flat, minlength=int(flat.max()) + 1)
-    starts = np.concatenate(([0], np.cumsum(counts))).astype(np.int64)
+    order, starts, counts = ks.pixels_by_segment(labels)
     planes, support, inliers = ks.fit_planes(
-        np.ascontiguousarray(disp, dtype=np.float32), labels, order.astype(np.int64), starts,
+        np.ascontiguousarray(disp, dtype=np.float32), labels, order, starts,
         0 if p.method == "ransac" else 1, p.iterations, float(p.inlier), p.min_points, p.seed,
         float(p.slope_bin),
     )

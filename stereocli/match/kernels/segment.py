@@ -303,6 +303,30 @@ def _fit_planes_chunk(disp, labels, order, starts, method: int, iterations: int,
         planes[s, 4] = cy
 
 
+@chunk_kernel
+def _pixels_by_segment_chunk(flat, starts, order, n_chunks: int, chunk: int) -> None:
+    """:func:`pixels_by_segment` (one chunk: a counting sort is one pass over the pixels)."""
+    next_slot = starts[:-1].copy()
+    for i in range(flat.shape[0]):
+        label = flat[i]
+        order[next_slot[label]] = i
+        next_slot[label] += 1
+
+
+def pixels_by_segment(labels: np.ndarray):
+    """The flat pixel indices grouped by segment, each segment's in increasing order (as a
+    stable argsort of the labels gives them, by a counting sort: a tenth of the time), and
+    ``(order, starts, counts)``: segment s holds ``order[starts[s]:starts[s + 1]]``;
+    ``labels`` (H, W) int32 0..n−1."""
+    flat = np.ascontiguousarray(labels).ravel()
+    counts = np.bincount(flat, minlength=int(flat.max()) + 1 if flat.size else 0)
+    starts = np.zeros(counts.shape[0] + 1, np.int64)
+    np.cumsum(counts, out=starts[1:])
+    order = np.empty(flat.shape[0], np.int64)
+    for_chunks(_pixels_by_segment_chunk, 1, flat, starts, order, 1)
+    return order, starts, counts
+
+
 def fit_planes(disp, labels, order, starts, method: int, iterations: int, inlier: float,
                min_points: int, seed: int, slope_bin: float):
     """Fit ``d = a·(x − cx) + b·(y − cy) + c`` per segment to its finite disparities.
