@@ -128,4 +128,3 @@ def _nearest(queries: np.ndarray, candidates: np.ndarray, norm: int, *, second: 
     best = np.array([pair[0].distance for pair in pairs], np.float64)
     runner_up = np.array([pair[1].distance for pair in pairs], np.float64) if second else best
     return index, best, runner_up
-

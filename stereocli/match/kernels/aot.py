@@ -15,9 +15,9 @@ files, so an edited kernel never runs stale), the same CPU (the modules are comp
 host CPU's instruction set: AVX-512 code would crash an older CPU) and the same NumPy major
 version. ``STEREOCLI_AOT=0`` turns them off.
 
-The kernels and argument types compiled are those of the ``default``, ``fast``, ``accurate`` and
-``realtime`` presets, listed in :data:`SIGNATURES_FILE` (``tests/test_aot.py`` checks the list
-against runs of those presets).
+The kernels and argument types compiled are those of the ``default``, ``fast``, ``accurate``,
+``realtime`` and ``quality`` presets, listed in :data:`SIGNATURES_FILE` (``tests/test_aot.py``
+checks the list against runs of those presets).
 """
 
 from __future__ import annotations

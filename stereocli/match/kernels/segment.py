@@ -802,7 +802,7 @@ def _vote_chunk(disp, bins, packed, centre, passed, min_change: int, max_bins: i
     fn = np.zeros(n_pos, np.int64)
     kk = np.empty(max_bins, np.int32)
     entry = np.full(n_bins, -1, np.int32)  # the entry of kk holding each bin, -1 if none
-    n = 0
+    n = 0  # bins the running vote keeps (carried to the next reset, which clears them from entry)
     mm = np.empty(max_bins, np.float64)  # masses and disparity sums, stored divided by ``scale``
     ss = np.empty(max_bins, np.float64)
     # A decision's candidates: mass and disparity sum by bin (zero between decisions) and
@@ -867,7 +867,7 @@ def _vote_chunk(disp, bins, packed, centre, passed, min_change: int, max_bins: i
                 k = b_line[p]
                 if k >= 0:
                     n, run_k, run_m, run_s = _add_vote(kk, mm, ss, entry, n, scale, run_k, run_m, run_s, k,
-                                                             d_line[p])
+                                                       d_line[p])
             # Backward, deciding each centre from its own vote and both running votes.
             _forget_bins(kk, entry, n)
             n, scale, run_k, run_m, run_s = _empty_vote()
