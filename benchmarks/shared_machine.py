@@ -44,6 +44,10 @@ BUSY_LOOP = "while True: pass"
 
 
 def stereocli_command() -> list[str]:
+    # The console script beside this interpreter (not a version manager's shim on PATH).
+    beside = Path(sys.executable).parent / "stereocli"
+    if beside.is_file():
+        return [str(beside)]
     exe = shutil.which("stereocli")
     return [exe] if exe else [sys.executable, "-m", "stereocli"]
 

@@ -91,6 +91,10 @@ class StageTraits:
     needs_right_costs: Predicate | None = None
     #: ``f(params) -> bool``: reads the optimizer's integer maps (``state.integer_disparity``).
     keeps_integer: Predicate | None = None
+    #: Reads ``state.mirrored_disparity``: the map of the same pipeline, up to this stage, run
+    #: on the mirrored pair (both images flipped left-right and swapped), flipped back, so it is
+    #: referenced to the right image. The pipeline runs it just before the stage.
+    needs_mirrored: bool = False
 
     # -- cost stages ----------------------------------------------------------------------
     #: ``f(state, params, winner: bool)``: cost + WTA in one pass, never storing the volume

@@ -149,6 +149,9 @@ class PreparedPair:
     overlap: int  # context rows added above and below each strip
     keep_invalid: bool = False
     timings: dict[str, float] = field(default_factory=dict)  # preprocess seconds per stage
+    #: (left, right, left_valid, right_valid) as given to :func:`prepare`, kept only when a map
+    #: refinement ``needs_mirrored`` (the mirrored pair is made from them).
+    inputs: tuple | None = None
 
 
 @dataclass
@@ -248,7 +251,9 @@ def prepare(
         _timed(timings, f"preprocess.{call.stage.name}", call.stage.func, state, call.params)
     strips = plan_strips(config, shape[0], shape[1], ndisp)
     overlap = config.runtime.strip_overlap if len(strips) > 1 else 0
-    return PreparedPair(state, strips, overlap, keep_invalid, timings)
+    mirrored = any(c.stage.traits.needs_mirrored for c in refinements)
+    inputs = (left, right, left_valid, right_valid) if mirrored else None
+    return PreparedPair(state, strips, overlap, keep_invalid, timings, inputs)
 
 
 def strip_input(prepared: PreparedPair, y0: int, y1: int) -> MatchState:
@@ -316,7 +321,13 @@ def finish(prepared: PreparedPair, results: list[StripResult], config: PipelineC
     state.disparity, state.disparity_right, state.confidence = disparity, disparity_right, confidence
     state.integer_disparity, state.integer_disparity_right = integer.values()
     for call in map_stages:
+        if call.stage.traits.needs_mirrored:
+            t0 = time.perf_counter()
+            state.mirrored_disparity = mirrored_disparity(prepared, config, call)
+            key = f"refinement.{call.stage.name}.mirrored_pair"
+            timings[key] = timings.get(key, 0.0) + time.perf_counter() - t0
         _timed(timings, f"refinement.{call.stage.name}", call.stage.func, state, call.params)
+        state.mirrored_disparity = None
     clear_invalid_left(state)
     _current_config[0] = None
     strips, overlap = prepared.strips, prepared.overlap
@@ -329,6 +340,29 @@ def finish(prepared: PreparedPair, results: list[StripResult], config: PipelineC
         memory_estimate_gb=estimate_memory(config, min(shape[0], strips[0][1] + 2 * overlap), shape[1],
                                            state.ndisp) / GIB,
     )
+
+
+def mirrored_disparity(prepared: PreparedPair, config: PipelineConfig, call) -> np.ndarray:
+    """The right-referenced map a ``needs_mirrored`` refinement ``call`` reads: every stage of
+    ``config`` before ``call`` run on the mirrored pair (right image flipped left-right as the
+    left, left image flipped as the right, masks likewise), flipped back.
+
+    (H, W) float32 px, +inf invalid: at right-image column ``x`` the disparity ``d`` of the point
+    seen at ``x + d`` in the left image. Mirroring keeps the disparity range, and the mirrored
+    run sees each occlusion and each census window from the other side, so its errors are
+    largely independent of the left map's."""
+    left, right, left_valid, right_valid = prepared.inputs
+    flip = lambda m: None if m is None else m[:, ::-1]  # noqa: E731
+    before = config.refinement[:next(i for i, c in enumerate(config.refinement) if c is call)]
+    saved = _current_config[0]
+    try:
+        result = match_pair(flip(right), flip(left), replace(config, refinement=before),
+                            min_disp=prepared.state.min_disp, ndisp=prepared.state.ndisp,
+                            left_valid=flip(right_valid), right_valid=flip(left_valid),
+                            keep_invalid=prepared.keep_invalid)
+    finally:
+        _current_config[0] = saved
+    return np.ascontiguousarray(result.disparity[:, ::-1])
 
 
 StripMap = Callable[[PreparedPair, PipelineConfig], list[StripResult]]

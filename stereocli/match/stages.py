@@ -34,6 +34,7 @@ CATALOGUE: dict[str, dict[str, tuple[str, ...]]] = {
     "stereocli.match.refine_local": {"refinement": ("single_matching_phase", "texture", "fill_weighted_median")},
     "stereocli.match.refine_voting": {"refinement": ("region_voting", "proper_interpolation")},
     "stereocli.match.refine_slanted": {"refinement": ("slanted_patchmatch",)},
+    "stereocli.match.refine_fusion": {"refinement": ("mirror_fusion",)},
 }
 
 for _module, _kinds in CATALOGUE.items():

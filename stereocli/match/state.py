@@ -23,7 +23,10 @@ mutates ``state``:
   integer winners (``wants.integer_maps``, e.g. ``lr_check`` with ``compare: integer``), the
   pipeline copies ``disparity`` / ``disparity_right`` into ``integer_disparity`` /
   ``integer_disparity_right`` right after the optimizer (and the right view), before any
-  volume refinement moves them, and stitches them like the maps.
+  volume refinement moves them, and stitches them like the maps. Before a map refinement
+  whose traits say ``needs_mirrored``, the pipeline runs the stages before it on the mirrored
+  pair (both images flipped left-right and swapped) and sets ``mirrored_disparity``: that map
+  flipped back, referenced to the right image.
 
 What a stage reads about a stage is in its :class:`~stereocli.registry.StageTraits`; what the
 rest of the pipeline asks of a stage is in :attr:`MatchState.wants` (:class:`Wants`), set by
@@ -92,6 +95,7 @@ class MatchState:
     confidence: np.ndarray | None = None  # (H, W) float32 in [0, 1]
     integer_disparity: np.ndarray | None = None  # (H, W) float32: ``disparity`` as the optimizer left it (if keep_integer)
     integer_disparity_right: np.ndarray | None = None  # (H, W) float32: the same for ``disparity_right``
+    mirrored_disparity: np.ndarray | None = None  # (H, W) float32 px, right-referenced: for a ``needs_mirrored`` stage
     wants: Wants = field(default_factory=Wants)  # what later stages and outputs need
     row_offset: int = 0  # first image row of this (strip) state
     threads: int = 0  # 0 = numba default

@@ -1,0 +1,71 @@
+"""Fusion of the left map with the same pipeline's map of the mirrored pair (``mirror_fusion``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..registry import StageTraits, param, register
+from .state import MatchState
+
+
+@dataclass(frozen=True)
+class MirrorFusionParams:
+    tolerance: float = param(1.0, "the two maps are averaged where they differ by less than this", unit="px",
+                             low=0.0, high=1000.0)
+
+
+def sample_right_map(disparity: np.ndarray, right_map: np.ndarray) -> np.ndarray:
+    """``right_map`` read where each left pixel lands: at column ``x − d`` of its row, linearly
+    interpolated between the two nearest columns.
+
+    ``disparity`` (H, W) float32 px, left-referenced; ``right_map`` (H, W) float32 px,
+    referenced to the right image. Returns (H, W) float32; +inf where ``d`` is invalid, ``x − d``
+    falls outside ``[0, W − 1]`` or a column it reads (at a weight above 0) is invalid."""
+    h, w = disparity.shape
+    finite = np.isfinite(disparity)
+    x_right = np.arange(w, dtype=np.float32)[None, :] - np.where(finite, disparity, np.float32(0))
+    inside = finite & (x_right >= 0) & (x_right <= w - 1)
+    if w < 2:
+        return np.where(inside, right_map, np.float32(np.inf)).astype(np.float32)
+    # The left column of the two read; at x − d = W − 1 exactly, the pair (W − 2, W − 1) at weight 1.
+    column = np.clip(np.floor(x_right), 0, w - 2).astype(np.intp)
+    weight = (x_right - column).astype(np.float32)
+    rows = np.arange(h)[:, None]
+    before, after = right_map[rows, column], right_map[rows, column + 1]
+    # A column read at weight 0 may be invalid: an integer x − d needs only its own column.
+    usable = inside & (np.isfinite(before) | (weight == 1)) & (np.isfinite(after) | (weight == 0))
+    before = np.where(np.isfinite(before), before, np.float32(0))
+    after = np.where(np.isfinite(after), after, np.float32(0))
+    sampled = np.where(usable, before + weight * (after - before), np.inf)
+    return sampled.astype(np.float32)
+
+
+def fuse_with_mirrored(disparity: np.ndarray, right_map: np.ndarray, tolerance: float) -> np.ndarray:
+    """(H, W) float32: the mean of each left pixel's disparity and ``right_map`` at the pixel it
+    matches (:func:`sample_right_map`) where the two differ by less than ``tolerance`` px; the
+    left disparity elsewhere (invalid pixels stay invalid)."""
+    sampled = sample_right_map(disparity, right_map)  # +inf wherever the left value is
+    agree = np.isfinite(sampled)
+    agree[agree] = np.abs(sampled[agree] - disparity[agree]) < tolerance
+    return np.where(agree, np.float32(0.5) * (disparity + sampled), disparity).astype(np.float32)
+
+
+@register("refinement", "mirror_fusion", MirrorFusionParams, traits=StageTraits(needs_mirrored=True))
+def mirror_fusion(state: MatchState, p: MirrorFusionParams) -> None:
+    """Average the map with the same pipeline's map of the mirrored pair where they agree.
+
+    The pipeline first runs every stage before this one on the mirrored pair (both images
+    flipped left-right and swapped, so the right view is matched as a left view) and flips the
+    result back: a map referenced to the right image whose census windows, SGM paths and
+    occlusions lie on the other side. Each left pixel reads it where it matches (``x − d``,
+    linear interpolation) and, where the two differ by less than ``tolerance`` px, takes their
+    mean: two largely independent estimates of the same surface point, so the sub-pixel error
+    shrinks. Elsewhere (occlusions, the two maps disagreeing) the pixel keeps its value. The
+    mirrored run costs as much as the stages before this one; place it on a dense map, e.g.
+    before ``slanted_patchmatch``.
+    """
+    if state.mirrored_disparity is None:
+        raise RuntimeError("mirror_fusion: the pipeline did not provide the mirrored pair's map")
+    state.disparity = fuse_with_mirrored(state.disparity, state.mirrored_disparity, float(p.tolerance))

@@ -1,0 +1,99 @@
+"""``mirror_fusion``: reading a right-referenced map where each left pixel matches, the fusion
+rule, and the pipeline's mirrored run (the stages before the fusion on the flipped, swapped
+pair) against the same run done by hand."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from stereocli.errors import ConfigError
+from stereocli.match.config import build_config
+from stereocli.match.pipeline import match_pair
+from stereocli.match.refine_fusion import fuse_with_mirrored, sample_right_map
+from stereocli.synth.scenes import render, scene_surfaces
+
+INF = np.float32(np.inf)
+
+
+def test_sample_right_map_interpolates_at_x_minus_d():
+    right_map = np.array([[10.0, 20.0, 40.0, 80.0]], np.float32)
+    disparity = np.array([[0.0, 0.5, 1.25, 0.0]], np.float32)
+    # x - d: 0 -> 10; 0.5 -> 15; 0.75 -> 17.5; 3 (the last column) -> 80.
+    np.testing.assert_array_equal(sample_right_map(disparity, right_map), [[10.0, 15.0, 17.5, 80.0]])
+
+
+def test_sample_right_map_is_invalid_outside_the_image_or_next_to_an_invalid_column():
+    right_map = np.array([[5.0, INF, 7.0, 9.0, 11.0]], np.float32)
+    disparity = np.array([[0.0, 1.5, 0.5, INF, -0.5]], np.float32)
+    # x - d: 0 -> 5; -0.5 outside; 1.5 reads the invalid column 1; d invalid; 4.5 outside.
+    np.testing.assert_array_equal(sample_right_map(disparity, right_map), [[5.0, INF, INF, INF, INF]])
+    # An integer x - d next to an invalid column still reads the valid one exactly.
+    np.testing.assert_array_equal(sample_right_map(np.array([[0.0, 0.0, 0.0, 0.0, 0.0]], np.float32), right_map),
+                                  [[5.0, INF, 7.0, 9.0, 11.0]])
+
+
+def test_fusion_averages_where_the_maps_agree_and_keeps_the_left_value_elsewhere():
+    disparity = np.array([[2.0, 2.0, 2.0, INF, 2.0, 2.0]], np.float32)
+    right_map = np.array([[1.0, 1.0, 1.2, 4.0, 2.5, 9.0]], np.float32)
+    # Pixel x reads right column x - 2: x=2 -> 1.0 (1 px off); x=4 -> 1.2 (0.8 px); x=5 -> 4.0 (2 px).
+    expected = {1.0: [2.0, 2.0, 2.0, INF, 0.5 * (2.0 + np.float32(1.2)), 2.0],
+                1.5: [2.0, 2.0, 1.5, INF, 0.5 * (2.0 + np.float32(1.2)), 2.0]}
+    for tolerance, values in expected.items():
+        np.testing.assert_array_equal(fuse_with_mirrored(disparity, right_map, tolerance),
+                                      np.array([values], np.float32))
+
+
+def test_fusing_a_slanted_plane_with_its_own_right_view_changes_nothing():
+    # Left map d = 0.05 x + 0.02 y + 3 on a 60 x 40 image; its right view (a point at left column
+    # x lands on x - d) is linear in the right column too, so interpolation reads it exactly.
+    h, w = 40, 60
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
+    left_map = 0.05 * xs + 0.02 * ys + 3.0
+    # x_r = x - d = 0.95 x - 0.02 y - 3  =>  x = (x_r + 0.02 y + 3) / 0.95.
+    right_map = 0.05 * (xs + 0.02 * ys + 3.0) / 0.95 + 0.02 * ys + 3.0
+    fused = fuse_with_mirrored(left_map.astype(np.float32), right_map.astype(np.float32), 0.01)
+    inside = xs - left_map >= 0
+    np.testing.assert_allclose(fused[inside], left_map[inside], atol=1e-5)
+    # Read at x + d instead, the same right view is 0.3 px off or more: the sign matters.
+    wrong = np.interp(xs[0] + left_map[0], xs[0], right_map[0])
+    assert np.abs(wrong - left_map[0])[xs[0] + left_map[0] < w - 1].min() > 0.3
+
+
+def _scene():
+    out = render(scene_surfaces("planes", 96, 64, seed=1), 96, 64, noise=0.8, seed=1)
+    return out["left"], out["right"]
+
+
+BEFORE = "{name: subpixel}, {name: lr_check, max_diff: 1.0}, {name: fill}"
+
+
+def _config(tmp_path, refinements: str):
+    path = tmp_path / f"chain{len(list(tmp_path.iterdir()))}.yaml"
+    path.write_text(f"refinement: [{refinements}]\n")
+    return build_config([str(path)])
+
+
+@pytest.mark.parametrize("keep_invalid", [False, True])
+def test_the_pipeline_fuses_with_the_stages_before_it_run_on_the_mirrored_pair(tmp_path, keep_invalid):
+    left, right = _scene()
+    ndisp = 32
+    before = _config(tmp_path, BEFORE)
+    left_map = match_pair(left, right, before, ndisp=ndisp, keep_invalid=keep_invalid).disparity
+    flipped = match_pair(np.ascontiguousarray(right[:, ::-1]), np.ascontiguousarray(left[:, ::-1]), before,
+                         ndisp=ndisp, keep_invalid=keep_invalid).disparity
+    expected = fuse_with_mirrored(left_map, np.ascontiguousarray(flipped[:, ::-1]), 1.0)
+    # Most pixels agree within 1 px and move to the mean; the holes stay holes with --keep-invalid.
+    assert np.mean(expected != left_map) > 0.5
+    assert np.array_equal(np.isinf(expected), np.isinf(left_map))
+    assert np.isinf(left_map).any() == keep_invalid
+
+    fusing = _config(tmp_path, BEFORE + ", {name: mirror_fusion, tolerance: 1.0}")
+    result = match_pair(left, right, fusing, ndisp=ndisp, keep_invalid=keep_invalid)
+    np.testing.assert_array_equal(result.disparity, expected)
+    assert result.timings["refinement.mirror_fusion.mirrored_pair"] > 0
+
+
+def test_a_negative_tolerance_is_a_config_error(tmp_path):
+    with pytest.raises(ConfigError, match="tolerance"):
+        _config(tmp_path, "{name: mirror_fusion, tolerance: -1.0}")
