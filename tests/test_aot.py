@@ -149,18 +149,28 @@ def test_a_build_for_other_sources_another_cpu_damaged_or_none_is_not_used(monke
         assert aot._usable_build()[0] == {}, key
     monkeypatch.setenv("STEREOCLI_AOT_DIR", str(tmp_path / "empty"))
     assert aot._usable_build()[0] == {}
-    # A damaged build: a module missing, or one that does not load.
+    # A damaged build: a module missing (the build is not used), or one that does not load (that
+    # kernel runs from the JIT, the others from the build, and the record says so).
+    modules = sorted(built.glob("*.so")) or sorted(built.glob("*.pyd"))
     for damage in ("missing", "garbage"):
         damaged = tmp_path / damage
         damaged.mkdir()
-        modules = sorted(built.glob("*.so")) or sorted(built.glob("*.pyd"))
         for item in built.iterdir():
             if item != modules[0]:
                 (damaged / item.name).symlink_to(item)
         if damage == "garbage":
             (damaged / modules[0].name).write_bytes(b"not a shared library")
         monkeypatch.setenv("STEREOCLI_AOT_DIR", str(damaged))
-        assert aot._usable_build()[0] == {}, damage
+        if damage == "missing":
+            assert aot._usable_build()[0] == {}, damage
+            continue
+        table = aot._usable_build()[0]
+        monkeypatch.setattr(aot, "_table", [table])
+        monkeypatch.setattr(aot, "_not_loaded", [])
+        broken = [kernel for kernel in table.values() if kernel.path.name == modules[0].name]
+        assert len(broken) == 1 and broken[0].load() == {}
+        assert all(kernel.load() for kernel in table.values() if kernel not in broken)
+        assert f"1 did not load: {broken[0].name} (" in aot.describe()
     monkeypatch.setenv("STEREOCLI_AOT_DIR", str(built))
     monkeypatch.setenv("STEREOCLI_AOT", "0")
     assert aot._usable_build()[0] == {}
@@ -220,7 +230,7 @@ def test_runs_of_the_built_presets_never_import_numba(tmp_path):
     cv2.imwrite(str(tmp_path / "r.png"), right)
     code = ("import sys\nfrom stereocli.cli.main import main\n"
             "try:\n    main(sys.argv[1:])\nexcept SystemExit as exit:\n    assert exit.code == 0, exit.code\n"
-            "print('numba' in sys.modules)")
+            "print('numba' in sys.modules, 'stereocli.match.kernels.slanted' in sys.modules)")
     argv = [str(tmp_path / "l.png"), str(tmp_path / "r.png"), "--ndisp", "64", "-q", "--overwrite"]
     # The library calls of the other tests, in a fresh process: numba never starts either.
     library = ("import sys\nsys.path.insert(0, sys.argv[1])\nimport test_aot\ntest_aot._default_runs()\n"
@@ -234,8 +244,10 @@ def test_runs_of_the_built_presets_never_import_numba(tmp_path):
         done = subprocess.run([sys.executable, "-c", code, "match", *argv, "-o", str(out)], capture_output=True,
                               text=True, env=dict(os.environ, STEREOCLI_AOT=aot_flag, STEREOCLI_AOT_DIR=str(folder)))
         assert done.returncode == 0, done.stderr
-        outputs[aot_flag] = (done.stdout.split()[-1], (out / "l" / "disp0.pfm").read_bytes())
-    assert outputs["1"][0] == "False" and outputs["0"][0] == "True"  # numba imported only without the build
+        outputs[aot_flag] = (done.stdout.split()[-2:], (out / "l" / "disp0.pfm").read_bytes())
+    # numba imported only without the build; with it, only the kernels the default runs are loaded
+    # (not quality's slanted_patchmatch kernels)
+    assert outputs["1"][0] == ["False", "False"] and outputs["0"][0][0] == "True", outputs
     assert outputs["1"][1] == outputs["0"][1]
 
 

@@ -84,6 +84,17 @@ def test_ransac_draws_three_distinct_matches_uniformly():
     assert (np.sort(_distinct_triples(np.random.default_rng(1), 3, 50), axis=1) == [0, 1, 2]).all()  # n = 3
 
 
+def test_the_alignment_quantiles_are_numpys():
+    from stereocli.features.alignment import _quantile
+
+    rng = np.random.default_rng(2)
+    for n in (1, 2, 3, 10, 101):
+        values = rng.normal(size=n)
+        for q in (0.0, 0.5, 0.9, 1.0):
+            assert _quantile(values, q) == pytest.approx(np.quantile(values, q), abs=1e-12), (n, q)
+    assert _quantile(np.array([4.0, 1.0, 3.0, 2.0]), 0.5) == 2.5
+
+
 def test_too_few_matches_is_not_a_verdict():
     flat = np.full((60, 80), 10.0, np.float32)
     result = row_alignment(match_points(flat, flat))

@@ -72,8 +72,8 @@ def row_alignment(matches: PointMatches, *, threshold: float = DEFAULT_THRESHOLD
     if n < MIN_MATCHES:
         return RowAlignment(n, 0, 0, None, None, None, threshold)
     dy = matches.dy.astype(np.float64)
-    median = float(np.median(dy))
-    spread = float(np.percentile(np.abs(dy - median), 90))
+    median = _quantile(dy, 0.5)
+    spread = _quantile(np.abs(dy - median), 0.9)
     points = matches.left.astype(np.float64)
     design = np.column_stack([points, np.ones(n)])
     plane = _ransac_plane(points, dy)
@@ -87,6 +87,16 @@ def row_alignment(matches: PointMatches, *, threshold: float = DEFAULT_THRESHOLD
     held = np.abs(fitted - dy) <= INLIER_PX
     max_offset = float(np.max(np.abs(fitted[held]))) if held.any() else float(np.max(np.abs(fitted)))
     return RowAlignment(n, on_rows, on_plane, median, spread, max_offset, threshold)
+
+
+def _quantile(values: np.ndarray, q: float) -> float:
+    """``np.quantile(values, q)`` (linear interpolation) of a non-empty 1-D array. Written out
+    because NumPy's median and quantiles import ``numpy.ma``, 7 ms of every process's start."""
+    ordered = np.sort(values)
+    position = q * (len(ordered) - 1)
+    below = int(np.floor(position))
+    above = min(below + 1, len(ordered) - 1)
+    return float(ordered[below] + (position - below) * (ordered[above] - ordered[below]))
 
 
 def _ransac_plane(points: np.ndarray, dy: np.ndarray) -> np.ndarray:

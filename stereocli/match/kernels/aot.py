@@ -121,29 +121,61 @@ def cpu_fingerprint() -> str:
 
 # --- using a built folder -----------------------------------------------------------------------
 
-_table: list = [None]  # {python function: {argument type names: compiled function}}, once per process
+class _BuiltKernel:
+    """One kernel of a usable build: its extension module, loaded on the kernel's first call."""
+
+    def __init__(self, name: str, path: Path, signatures: list[list[str]]) -> None:
+        self.name, self.path, self.signatures = name, path, signatures
+        self.functions: dict | None = None  # {argument type names: compiled function}
+
+    def load(self) -> dict:
+        """The compiled functions ({} if the module does not load: the kernel then runs from
+        numba's JIT, and :func:`describe` says so)."""
+        if self.functions is None:
+            try:
+                extension = _import_extension(self.path)
+                self.functions = {tuple(types): getattr(extension, export_name(self.name, i))
+                                  for i, types in enumerate(self.signatures)}
+            except Exception as exc:  # noqa: BLE001 - a damaged module: this kernel from the JIT
+                self.functions = {}
+                _not_loaded.append(f"{self.name} ({exc})")
+        return self.functions
+
+
+_table: list = [None]  # {"module.function": _BuiltKernel} of the usable build, once per process
 _table_lock = threading.Lock()
+_not_loaded: list = []  # kernels of the build whose module did not load
 
 
 def find(kernel, args: tuple):
     """The compiled function for ``kernel`` (a chunk kernel's dispatcher) called with ``args``,
-    or None (no usable built folder, or a kernel or signature it does not hold)."""
+    or None (no usable built folder, or a kernel or signature it does not hold).
+
+    A kernel's extension module is loaded on its first call, so a process loads only the
+    modules of the kernels its stages run (and imports no other kernel module)."""
     table = _table[0]
     if table is None:
         table = _loaded_table()
     if not table:
         return None
-    entry = table.get(getattr(kernel, "py_func", None))
-    if entry is None:
+    function = getattr(kernel, "py_func", None)
+    if function is None:
         return None
-    return entry.get(tuple(type_name(a) for a in args))
+    built = table.get(f"{function.__module__.rsplit('.', 1)[-1]}.{function.__name__}")
+    if built is None:
+        return None
+    functions = built.functions
+    if functions is None:
+        with _table_lock:  # threads of a Dask worker may match pairs at once
+            functions = built.load()
+    return functions.get(tuple(type_name(a) for a in args))
 
 
 _why_not: list = [""]  # why the build is not used ("" while it is, or before the first lookup)
 
 
 def _loaded_table() -> dict:
-    """The table of the built folder, loaded on first use (once per process)."""
+    """The table of the built folder, read on first use (once per process)."""
     with _table_lock:  # threads of a Dask worker may match pairs at once
         if _table[0] is None:
             _table[0], _why_not[0] = _usable_build()
@@ -151,8 +183,9 @@ def _loaded_table() -> dict:
 
 
 def _usable_build() -> tuple[dict, str]:
-    """``({python function: {argument types: compiled function}}, "")`` of the built folder if
-    it is usable, else ``({}, why not)``."""
+    """``({"module.function": _BuiltKernel}, "")`` of the built folder if it is usable, else
+    ``({}, why not)``. Usable: its manifest matches this process and every module file is
+    there (a module that is there but does not load is found on the kernel's first call)."""
     if os.environ.get("STEREOCLI_AOT", "1") == "0":
         return {}, "STEREOCLI_AOT=0"
     folder = Path(os.environ.get("STEREOCLI_AOT_DIR") or BUILD_DIR)
@@ -165,13 +198,11 @@ def _usable_build() -> tuple[dict, str]:
         if manifest.get(key) != expected[key]:
             return {}, f"the build in {folder} is for {what}"
     table: dict = {}
-    try:
-        for kernel, entry in manifest["kernels"].items():
-            extension = _import_extension(folder, entry["module"])
-            table[_python_function(kernel)] = {tuple(types): getattr(extension, export_name(kernel, i))
-                                               for i, types in enumerate(entry["signatures"])}
-    except Exception as exc:  # noqa: BLE001 - a damaged build (a module missing or not loading): the JIT's kernels
-        return {}, f"the build in {folder} does not load ({exc})"
+    for kernel, entry in manifest["kernels"].items():
+        path = _extension_path(folder, entry["module"])
+        if path is None:
+            return {}, f"the build in {folder} is incomplete ({entry['module']} is missing)"
+        table[kernel] = _BuiltKernel(kernel, path, entry["signatures"])
     return table, ""
 
 
@@ -179,7 +210,8 @@ def describe() -> str:
     """One line on the kernels compiled at install, for records and ``--show-versions``."""
     table = _loaded_table()
     if table:
-        return f"{len(table)} compiled at install; others from numba's JIT"
+        broken = f"; {len(_not_loaded)} did not load: {', '.join(_not_loaded)}" if _not_loaded else ""
+        return f"{len(table)} compiled at install; others from numba's JIT{broken}"
     return f"none compiled at install ({_why_not[0]}): numba's JIT"
 
 
@@ -197,16 +229,21 @@ def expected_manifest(kernels: dict) -> dict:
             "kernels": kernels}
 
 
-def _import_extension(folder: Path, name: str):
-    """The extension module ``name`` built in ``folder``; raises if it is missing or does not load."""
+def _extension_path(folder: Path, name: str) -> Path | None:
+    """The file of extension module ``name`` built in ``folder``, or None."""
     for suffix in importlib.machinery.EXTENSION_SUFFIXES:
         path = folder / (name + suffix)
         if path.is_file():
-            spec = importlib.util.spec_from_file_location(name, path)
-            extension = importlib.util.module_from_spec(spec)
-            spec.loader.exec_module(extension)
-            return extension
-    raise ImportError(f"{name} not found in {folder}")
+            return path
+    return None
+
+
+def _import_extension(path: Path):
+    """The extension module in ``path``; raises if it does not load."""
+    spec = importlib.util.spec_from_file_location(path.name.split(".")[0], path)
+    extension = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(extension)
+    return extension
 
 
 # --- building -----------------------------------------------------------------------------------
