@@ -22,10 +22,22 @@ def _bad2(folder, preset: str) -> float:
     return result.metrics["nonocc"]["bad2.0"]
 
 
-# Measured: Adirondack 11.55 -> 9.11 (slanted surfaces and mismatched patches), Teddy 8.24 -> 7.68.
-@pytest.mark.parametrize("scene, at_most, gain", [("Adirondack", 9.6, 1.5), ("Teddy", 8.0, 0.3)])
+# Measured: Adirondack 11.55 -> 8.60 (slanted surfaces and mismatched patches), Teddy 8.24 -> 7.44.
+@pytest.mark.parametrize("scene, at_most, gain", [("Adirondack", 9.1, 2.5), ("Teddy", 7.8, 0.6)])
 def test_quality_beats_the_default_on_real_scenes(shared_data, scene, at_most, gain):
     folder = shared_data / "middlebury2014" / "trainingQ" / scene
     default, quality = _bad2(folder, "default"), _bad2(folder, "quality")
     assert quality <= at_most, (scene, quality)
     assert quality <= default - gain, (scene, default, quality)
+
+
+def test_quality_is_no_worse_than_the_default_on_any_middeval3_scene(shared_data):
+    # Measured: every scene 0.3 (Pipes, Jadeplant) to 3.3 (Playtable) points better.
+    scenes = sorted(p for p in (shared_data / "middlebury2014" / "trainingQ").iterdir() if (p / "calib.txt").is_file())
+    assert len(scenes) >= 15
+    worse = {}
+    for folder in scenes:
+        default, quality = _bad2(folder, "default"), _bad2(folder, "quality")
+        if quality > default:
+            worse[folder.name] = (default, quality)
+    assert not worse, worse
