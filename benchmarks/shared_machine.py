@@ -31,6 +31,8 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "benchmarks"))
+from startup import stereocli_command  # noqa: E402  (the console script beside this Python)
 DATA = REPO.parent / "shared" / "data" / "middlebury2014" / "trainingQ"
 
 #: variant -> (extra environment, extra arguments)
@@ -41,15 +43,6 @@ VARIANTS = {
     "1 thread": ({}, ["--set", "runtime.threads=1"]),
 }
 BUSY_LOOP = "while True: pass"
-
-
-def stereocli_command() -> list[str]:
-    # The console script beside this interpreter (not a version manager's shim on PATH).
-    beside = Path(sys.executable).parent / "stereocli"
-    if beside.is_file():
-        return [str(beside)]
-    exe = shutil.which("stereocli")
-    return [exe] if exe else [sys.executable, "-m", "stereocli"]
 
 
 def run(argv: list[str], env: dict) -> float:

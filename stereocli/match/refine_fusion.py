@@ -35,9 +35,10 @@ def sample_right_map(disparity: np.ndarray, right_map: np.ndarray) -> np.ndarray
     rows = np.arange(h)[:, None]
     before, after = right_map[rows, column], right_map[rows, column + 1]
     # A column read at weight 0 may be invalid: an integer x − d needs only its own column.
-    usable = inside & (np.isfinite(before) | (weight == 1)) & (np.isfinite(after) | (weight == 0))
-    before = np.where(np.isfinite(before), before, np.float32(0))
-    after = np.where(np.isfinite(after), after, np.float32(0))
+    before_valid, after_valid = np.isfinite(before), np.isfinite(after)
+    usable = inside & (before_valid | (weight == 1)) & (after_valid | (weight == 0))
+    before = np.where(before_valid, before, np.float32(0))
+    after = np.where(after_valid, after, np.float32(0))
     sampled = np.where(usable, before + weight * (after - before), np.inf)
     return sampled.astype(np.float32)
 
