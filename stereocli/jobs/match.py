@@ -275,6 +275,8 @@ def match_item(item: WorkItem) -> dict:
         "valid_fraction": round(float(finite.mean()), 6),
         **survey,
     }
+    if result.notes:
+        details["stage_notes"] = result.notes
     if png16_lost:
         details["png16_unrepresentable"] = png16_lost
         details["warnings"] = [*details.get("warnings", []),

@@ -69,6 +69,7 @@ class MatchResult:
     timings: dict[str, float] = field(default_factory=dict)  # seconds per stage
     strips: int = 1
     memory_estimate_gb: float = 0.0
+    notes: dict = field(default_factory=dict)  # stage name -> facts a stage found (e.g. row_align's fit)
 
 
 def volume_copies(config: PipelineConfig) -> float:
@@ -339,6 +340,7 @@ def finish(prepared: PreparedPair, results: list[StripResult], config: PipelineC
         strips=len(strips),
         memory_estimate_gb=estimate_memory(config, min(shape[0], strips[0][1] + 2 * overlap), shape[1],
                                            state.ndisp) / GIB,
+        notes=dict(state.notes),
     )
 
 

@@ -100,6 +100,7 @@ class MatchState:
     row_offset: int = 0  # first image row of this (strip) state
     threads: int = 0  # 0 = numba default
     extras: dict = field(default_factory=dict)  # stage-to-stage data (e.g. raw costs for MI)
+    notes: dict = field(default_factory=dict)  # stage name -> JSON-ready facts for the match record
     gray_cache: dict = field(default_factory=dict, repr=False)  # which -> (image, its grey), see gray()
 
     @property

@@ -107,8 +107,11 @@ def _shade(surfaces: list[Surface], idx: np.ndarray, x: np.ndarray, y: np.ndarra
 
 
 def render(surfaces: list[Surface], width: int, height: int, *, supersample: int = 3,
-           noise: float = 0.0, seed: int = 0) -> dict[str, np.ndarray]:
-    """Render left/right images (uint8 RGB), GT disparity (float32) and nonocc mask (uint8)."""
+           noise: float = 0.0, seed: int = 0, right_row_offset: float = 0.0) -> dict[str, np.ndarray]:
+    """Render left/right images (uint8 RGB), GT disparity (float32) and nonocc mask (uint8).
+
+    ``right_row_offset`` (px) renders a pair whose rows do not quite meet: a point of left row
+    y appears at row y + offset in the right view (the GT and mask stay those of the left view)."""
     rng = np.random.default_rng(seed)
     ys, xs = np.mgrid[0:height, 0:width].astype(np.float64)
     offsets = (np.arange(supersample) + 0.5) / supersample - 0.5
@@ -119,8 +122,9 @@ def render(surfaces: list[Surface], width: int, height: int, *, supersample: int
             x, y = xs + ox, ys + oy
             idx, _ = _visible(surfaces, x, y)
             left += _shade(surfaces, idx, x, y)
-            ridx, _, rx = _visible_right(surfaces, x, y)
-            right += _shade(surfaces, ridx, rx, y)
+            ry = y - right_row_offset  # the scene row the right view's row y shows
+            ridx, _, rx = _visible_right(surfaces, x, ry)
+            right += _shade(surfaces, ridx, rx, ry)
     n = supersample * supersample
     left, right = left / n, right / n
     if noise > 0:
