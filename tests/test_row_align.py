@@ -96,7 +96,7 @@ def test_default_undoes_a_rendered_row_offset(name, without_row_align):
     on_aligned = match_pair(aligned["left"], aligned["right"], default, ndisp=48)
     # An aligned pair is left as it is: the fit stays below min_offset.
     note = on_aligned.notes["row_align"]
-    assert note["applied"] is False and note["largest_px"] < 0.05 and "min_offset" in note["reason"]
+    assert note["applied"] is False and note["largest_px"] < 0.1 and "min_offset" in note["reason"]
     reference = match_pair(aligned["left"], aligned["right"], without_row_align, ndisp=48).disparity
     np.testing.assert_array_equal(on_aligned.disparity, reference)
     # A 0.4 px offset is measured and undone.
@@ -136,3 +136,20 @@ def test_middeval3_row_offsets(shared_data, scene, low, high):
     result = match_pair(left, right, build_config(["default"]), ndisp=64)
     note = result.notes["row_align"]
     assert note["applied"] is True and low <= note["offset_px"] <= high
+
+
+def test_tracks_do_not_depend_on_the_thread_count():
+    import cv2
+
+    scene = render(scene_surfaces("curved", W, H, seed=0), W, H, right_row_offset=0.3)
+    runs = []
+    before = cv2.getNumThreads()
+    try:
+        for threads in (1, 2):
+            cv2.setNumThreads(threads)
+            runs.append(track_rows(_grey(scene["left"]), _grey(scene["right"]), disparity_range=(-1, 48), scale=2))
+    finally:
+        cv2.setNumThreads(before)
+    assert len(runs[0][0]) > 30
+    for a, b in zip(runs[0], runs[1]):
+        np.testing.assert_array_equal(a, b)
