@@ -110,6 +110,23 @@ def test_default_undoes_a_rendered_row_offset(name, without_row_align):
     assert bad_corrected < bad_aligned + 0.3
 
 
+def test_a_shift_of_several_pixels_is_undone(without_row_align):
+    scene = render(scene_surfaces("planes", W, H, seed=0), W, H, right_row_offset=5.0)
+    corrected = match_pair(scene["left"], scene["right"], build_config(["default"]), ndisp=48)
+    assert corrected.notes["row_align"]["applied"] is True
+    assert abs(corrected.notes["row_align"]["offset_px"] - 5.0) < 0.1
+    uncorrected = match_pair(scene["left"], scene["right"], without_row_align, ndisp=48).disparity
+    assert _bad(uncorrected, scene) > 30 and _bad(corrected.disparity, scene) < 3
+
+
+def test_rows_off_in_a_way_no_plane_describes_are_left_alone():
+    surfaces = scene_surfaces("curved", W, H, seed=0)
+    up, down = render(surfaces, W, H, right_row_offset=-2.0), render(surfaces, W, H, right_row_offset=2.0)
+    right = np.concatenate([up["right"][: H // 2], down["right"][H // 2:]])  # a 4 px step halfway down
+    note = match_pair(up["left"], right, build_config(["default"]), ndisp=48).notes["row_align"]
+    assert note["applied"] is False and "max_spread" in note["reason"] and note["spread_px"] > 0.5
+
+
 def test_an_offset_beyond_max_offset_is_left_alone():
     scene = render(scene_surfaces("planes", W, H, seed=0), W, H, right_row_offset=1.5)
     result = match_pair(scene["left"], scene["right"], build_config(["default"], ["preprocess.row_align.max_offset=1.0"]),

@@ -174,7 +174,8 @@ class RowAlignParams:
     window: int = param(21, "Lucas–Kanade window side", unit="px", low=5, high=99)
     sigma: float = param(3.0, "scale of the local brightness normalisation the tracking runs on (0 = raw grey)", unit="px", low=0.0, high=50.0)
     min_tracks: int = param(30, "fewest surviving tracks to correct the pair at all (a plane needs three times as many)", low=3, high=100000)
-    max_offset: float = param(3.0, "largest correction: a larger fitted offset leaves the pair as it is (rectify it instead)", unit="px", low=0.0, high=50.0)
+    max_offset: float = param(8.0, "largest correction: a larger fitted offset leaves the pair as it is (rectify it instead)", unit="px", low=0.0, high=50.0)
+    max_spread: float = param(0.5, "the tracks' robust standard deviation about the plane above which the pair is left as it is (its rows are off in a way a plane does not describe: rectify it)", unit="px", low=0.0, high=50.0)
     min_offset: float = param(0.1, "smallest correction: a pair whose fitted offset stays below this everywhere is left as it is (the fit's own error on aligned pairs reaches 0.06 px, and resampling blurs a little)", unit="px", low=0.0, high=50.0)
     reduce: int = param(2, "track on the images reduced by this factor (1: full resolution, about three times the time, same MiddEval3 scores)", choices=(1, 2, 4))
 
@@ -190,9 +191,11 @@ def row_align(state: MatchState, p: RowAlignParams) -> None:
     fits their vertical disparity robustly as a plane over the image (shift, rotation and
     scale difference; a constant with few tracks) and resamples the right view (cubic) so its
     rows meet the left view's. The left view, and so the disparity map's geometry, is left as
-    it is. A pair with fewer than ``min_tracks`` tracks, or a fitted offset beyond
-    ``max_offset`` px or below ``min_offset`` px everywhere, is left unchanged. The fit goes into the match record
-    (``stage_notes``). See :mod:`stereocli.features.vertical_offset`.
+    it is. A pair with fewer than ``min_tracks`` tracks, tracks that scatter about the plane by
+    more than ``max_spread`` px, or a fitted offset beyond ``max_offset`` px or below
+    ``min_offset`` px everywhere, is left unchanged. Only rows move, so the disparities stay
+    those of the right view as given (the part of a rotation along the rows stays in them). The
+    fit goes into the match record (``stage_notes``). See :mod:`stereocli.features.vertical_offset`.
     """
     from ..features.vertical_offset import fit_vertical_offset, resample_rows, track_rows
 
@@ -206,6 +209,9 @@ def row_align(state: MatchState, p: RowAlignParams) -> None:
     if plane is None:
         note["applied"] = False
         note["reason"] = f"fewer than {p.min_tracks} tracks"
+    elif plane.spread > p.max_spread:
+        note.update(plane.as_dict(), applied=False, reason=f"tracks scatter {plane.spread:.2f} px about the plane, "
+                                                            f"beyond max_spread {p.max_spread:g} px")
     elif plane.largest > p.max_offset:
         note.update(plane.as_dict(), applied=False, reason=f"offset beyond max_offset {p.max_offset:g} px")
     elif plane.largest < p.min_offset:
