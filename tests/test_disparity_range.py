@@ -113,7 +113,7 @@ def _write_pair(folder: Path, left, right) -> Path:
 
 def test_match_without_calib_estimates_and_records_the_range(run_cli, tmp_path):
     left, right, disp = slanted_pair(-12.0, 10.0, seed=5)
-    scene = _write_pair(tmp_path / "pairs" / "neg", left, right)
+    _write_pair(tmp_path / "pairs" / "neg", left, right)
     flat = _write_pair(tmp_path / "pairs" / "flat", np.full((120, 160), 90.0), np.full((120, 160), 90.0))
     r = run_cli("match", tmp_path / "pairs", "-o", tmp_path / "out")
     assert r.code == 3, r.err  # the textureless pair fails alone; the other is matched
@@ -151,12 +151,19 @@ def test_range_sources_option_calib_and_auto(run_cli, tmp_path):
 def test_misaligned_pair_warns_and_fails_on_request(run_cli, tmp_path):
     left, right, _ = slanted_pair(6.0, 18.0, seed=7)
     scene = _write_pair(tmp_path / "low", left, np.roll(right, 6, axis=0))
-    r = run_cli("match", scene, "-o", tmp_path / "o", "--ndisp", "32")
+    r = run_cli("match", scene, "-o", tmp_path / "o", "--ndisp", "32", "-c", "fast")
     assert r.code == 0
     warning = [line for line in r.err.splitlines() if line.startswith("Warning: low: rows not aligned")]
-    assert len(warning) == 1 and "median -6." in warning[0] or "median -5.9" in warning[0]
+    assert len(warning) == 1 and ("median -6." in warning[0] or "median -5.9" in warning[0])
+    assert warning[0].endswith("rectify the pair first")  # fast has no row_align
     params = json.loads((tmp_path / "o" / "low" / "params.json").read_text())
     assert params["alignment"]["aligned"] is False and params["warnings"]
+    # The default's row_align moves the rows back, and the warning says so.
+    r = run_cli("match", scene, "-o", tmp_path / "o1", "--ndisp", "32")
+    warning = [line for line in r.err.splitlines() if line.startswith("Warning: low: rows not aligned")]
+    assert r.code == 0 and len(warning) == 1 and "row_align moved the right view's rows by up to 6." in warning[0]
+    note = json.loads((tmp_path / "o1" / "low" / "params.json").read_text())["stage_notes"]["row_align"]
+    assert note["applied"] is True and abs(note["offset_px"] - 6.0) < 0.2
     r = run_cli("match", scene, "-o", tmp_path / "o2", "--ndisp", "32", "--require-aligned")
     assert r.code == 1 and "--require-aligned" in r.err and "rows not aligned" in r.err
     assert not (tmp_path / "o2" / "low" / "disp0.pfm").exists()

@@ -264,6 +264,7 @@ def match_item(item: WorkItem) -> dict:
         write_pfm(out["confidence"], conf)
     if "right" in out:
         write_pfm(out["right"], result.disparity_right)
+    survey["warnings"] = _rows_corrected(survey["warnings"], result.notes.get("row_align"))
     h, w = result.disparity.shape
     finite = np.isfinite(result.disparity)
     details = {
@@ -291,6 +292,22 @@ def match_item(item: WorkItem) -> dict:
     return details
 
 
+#: The survey's warning for a pair whose rows are off by more than the alignment threshold, and
+#: its advice (replaced by what ``row_align`` did when the matching corrected the rows).
+ROWS_NOT_ALIGNED = "rows not aligned"
+RECTIFY_FIRST = "rectify the pair first"
+
+
+def _rows_corrected(warnings: list[str], note: dict | None) -> list[str]:
+    """The survey's ``warnings`` with the rows warning's advice replaced by what ``row_align``
+    did, when it moved the right view's rows (``note``: its ``stage_notes`` entry)."""
+    if not note or not note.get("applied"):
+        return warnings
+    done = f"row_align moved the right view's rows by up to {note['largest_px']:.2f} px (params.json: stage_notes)"
+    return [w[:-len(RECTIFY_FIRST)] + done if w.startswith(ROWS_NOT_ALIGNED) and w.endswith(RECTIFY_FIRST) else w
+            for w in warnings]
+
+
 def survey_pair(name: str, left: np.ndarray, right: np.ndarray, opts: dict, *,
                 left_valid: np.ndarray | None = None, right_valid: np.ndarray | None = None) -> dict:
     """Row alignment of the pair, and its disparity range when it is to be estimated.
@@ -308,7 +325,7 @@ def survey_pair(name: str, left: np.ndarray, right: np.ndarray, opts: dict, *,
     alignment = row_alignment(matches)
     warnings = []
     if not alignment.aligned:
-        message = f"rows not aligned: {alignment.describe()}; rectify the pair first"
+        message = f"{ROWS_NOT_ALIGNED}: {alignment.describe()}; {RECTIFY_FIRST}"
         if opts.get("require_aligned"):
             raise DataError(f"{name}: {message} (--require-aligned)")
         warnings.append(message)

@@ -157,7 +157,6 @@ def scene_surfaces(name: str, width: int, height: int, seed: int = 0) -> list[Su
     tex_shape = (int(height * 2 + 40), int(width * 2 + 40))
     tex = lambda **kw: make_texture(rng, tex_shape, **kw)  # noqa: E731
     if name == "planes":
-        cx, cy = width / 2, height / 2
         return [
             # Background: a slanted plane (floor-like gradient in y, slight yaw in x).
             Surface(_plane(0.03, 0.04, 6.0), _everywhere, tex(base=(120, 110, 100))),
