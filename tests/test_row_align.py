@@ -170,3 +170,21 @@ def test_tracks_do_not_depend_on_the_thread_count():
     assert len(runs[0][0]) > 30
     for a, b in zip(runs[0], runs[1]):
         np.testing.assert_array_equal(a, b)
+
+
+def test_the_right_map_keeps_the_input_right_views_rows():
+    """``--right``: the right-referenced map of a pair whose right view is 3 px lower is the
+    aligned pair's right map 3 rows lower, not the map of the resampled view."""
+    surfaces = scene_surfaces("planes", W, H, seed=0)
+    aligned, shifted = render(surfaces, W, H), render(surfaces, W, H, right_row_offset=3.0)
+    default = build_config(["default"])
+    reference = match_pair(aligned["left"], aligned["right"], default, ndisp=48, want_right=True).disparity_right
+    result = match_pair(shifted["left"], shifted["right"], default, ndisp=48, want_right=True)
+    assert result.notes["row_align"]["applied"] is True
+    inner = (slice(10, H - 10), slice(10, W - 10))
+    moved = np.full_like(reference, np.inf)
+    moved[3:] = reference[:-3]
+    a, b = result.disparity_right[inner], moved[inner]
+    both = np.isfinite(a) & np.isfinite(b)
+    assert both.mean() > 0.9
+    assert np.mean(np.abs(a[both] - b[both]) > 0.5) < 0.03  # 0.17 if the map kept the resampled rows

@@ -62,6 +62,12 @@ class VerticalOffset:
         """The offset (px) at right-view column ``x`` and row ``y`` (arrays or scalars)."""
         return self.offset + self.tilt_x * (x / self.width - 0.5) + self.tilt_y * (y / self.height - 0.5)
 
+    def reversed(self) -> "VerticalOffset":
+        """The plane that moves rows back (to first order: ``v`` changes by hundredths of a
+        pixel over the few pixels it moves them)."""
+        return VerticalOffset(-self.offset, -self.tilt_x, -self.tilt_y, self.width, self.height, self.tracks,
+                              self.spread)
+
     @property
     def largest(self) -> float:
         """Largest |v| over the image (at a corner), px."""
@@ -171,7 +177,8 @@ def fit_vertical_offset(left_xy: np.ndarray, right_xy: np.ndarray, width: int, h
 
 def resample_rows(image: np.ndarray, plane: VerticalOffset, interpolation: int = cv2.INTER_CUBIC) -> np.ndarray:
     """The right view moved onto the left view's rows: ``out(x, y) = image(x, y + v(x, y))``
-    (cubic interpolation, borders replicated). (H, W) or (H, W, C), same dtype out."""
+    (cubic interpolation, borders replicated). (H, W) or (H, W, C), same dtype out. With
+    ``cv2.INTER_NEAREST`` it moves masks and disparity maps (+inf stays +inf)."""
     h, w = image.shape[:2]
     # v is affine in (x, y), so the whole move is one affine warp (source position per pixel).
     to_source = np.array([[1.0, 0.0, 0.0],
@@ -180,3 +187,9 @@ def resample_rows(image: np.ndarray, plane: VerticalOffset, interpolation: int =
     out = cv2.warpAffine(np.ascontiguousarray(image), to_source, (w, h), flags=interpolation | cv2.WARP_INVERSE_MAP,
                          borderMode=cv2.BORDER_REPLICATE)
     return out.reshape(image.shape)
+
+
+def move_map_rows(disparity: np.ndarray, plane: VerticalOffset) -> np.ndarray:
+    """A right-referenced map (H, W) float32 moved as :func:`resample_rows` moves the right view,
+    nearest neighbour (no value made up between surfaces; +inf stays +inf)."""
+    return resample_rows(np.ascontiguousarray(disparity, dtype=np.float32), plane, cv2.INTER_NEAREST)

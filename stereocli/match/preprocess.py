@@ -194,7 +194,8 @@ def row_align(state: MatchState, p: RowAlignParams) -> None:
     it is. A pair with fewer than ``min_tracks`` tracks, tracks that scatter about the plane by
     more than ``max_spread`` px, or a fitted offset beyond ``max_offset`` px or below
     ``min_offset`` px everywhere, is left unchanged. Only rows move, so the disparities stay
-    those of the right view as given (the part of a rotation along the rows stays in them). The
+    those of the right view as given (the part of a rotation along the rows stays in them), and
+    the pipeline moves the right-referenced map (``--right``) back onto the input's rows. The
     fit goes into the match record (``stage_notes``). See :mod:`stereocli.features.vertical_offset`.
     """
     from ..features.vertical_offset import fit_vertical_offset, resample_rows, track_rows
@@ -219,6 +220,7 @@ def row_align(state: MatchState, p: RowAlignParams) -> None:
     else:
         note.update(plane.as_dict(), applied=True)
         state.right = resample_rows(state.right, plane)
+        state.right_rows = plane
         if state.right_valid is not None:
             moved = resample_rows(state.right_valid.astype(np.uint8), plane, cv2.INTER_NEAREST)
             state.right_valid = moved > 0

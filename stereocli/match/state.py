@@ -47,6 +47,7 @@ image and ``rows_valid`` the slice of the strip's rows that is kept (the rest is
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -101,6 +102,10 @@ class MatchState:
     threads: int = 0  # 0 = numba default
     extras: dict = field(default_factory=dict)  # stage-to-stage data (e.g. raw costs for MI)
     notes: dict = field(default_factory=dict)  # stage name -> JSON-ready facts for the match record
+    # Set by a stage that resampled the right view's rows (``row_align``): the
+    # :class:`~stereocli.features.vertical_offset.VerticalOffset` it moved them by. The pipeline
+    # moves right-referenced maps between ``right``'s rows and the input's with it.
+    right_rows: Any = None
     gray_cache: dict = field(default_factory=dict, repr=False)  # which -> (image, its grey), see gray()
 
     @property
