@@ -103,7 +103,7 @@ def _reduced(grey: np.ndarray, scale: int) -> np.ndarray:
 
 def track_rows(left_grey: np.ndarray, right_grey: np.ndarray, *, disparity_range: tuple[float, float],
                left_valid: np.ndarray | None = None, points: int = 600, window: int = 21, sigma: float = 3.0,
-               max_offset: float = 3.0, scale: int = 1) -> tuple[np.ndarray, np.ndarray]:
+               max_offset: float = 8.0, scale: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """Corners of the left view tracked into the right view: ``(left_xy, right_xy)``, each
     (N, 2) float32 px, only tracks that survive the round trip, with a horizontal disparity
     ``x_left − x_right`` in ``disparity_range`` (px, inclusive) and a vertical one within

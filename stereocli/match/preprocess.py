@@ -1,6 +1,7 @@
-"""Preprocessing stages: filters applied to both images before the matching cost.
+"""Preprocessing stages: filters applied to both images before the matching cost, and
+``row_align``, which resamples the right view onto the left view's rows.
 
-Each stage replaces ``state.left`` and ``state.right`` by float32 images of the same shape,
+Each filter replaces ``state.left`` and ``state.right`` by float32 images of the same shape,
 processing every colour channel. Band-pass filters (LoG, mean removal, bilateral background
 subtraction) return ``128 + response`` clipped to [0, 255], so later stages keep working on the
 pipeline's [0, 255] range; the x-Sobel prefilter returns StereoBM's [0, 2·cap] range. They run

@@ -3,7 +3,8 @@
 Stage contract (see :mod:`stereocli.registry`): ``func(state: MatchState, params) -> None``
 mutates ``state``:
 
-* preprocess: replaces ``left``/``right`` (same shape, float32).
+* preprocess: replaces ``left``/``right`` (same shape, float32); a stage that resamples the
+  right view's rows records how in ``right_rows``.
 * cost: sets ``cost`` to a ``(H, W, D)`` C-contiguous float32 volume, ``D = ndisp``,
   (or uint8/uint16 holding integer costs, if ``wants.integer_cost``: the pipeline sets it when
   the volume goes straight to an optimizer whose traits say ``accepts_integer_cost``, e.g. ``sgm``),
