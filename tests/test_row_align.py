@@ -142,6 +142,9 @@ def test_the_match_record_holds_the_fit(run_cli, tmp_path):
     note = params["stage_notes"]["row_align"]
     assert set(note) >= {"applied", "offset_px", "tilt_x_px", "tilt_y_px", "tracks"}
     assert params["config"]["preprocess"][0]["name"] == "row_align"
+    # -v prints each pair's fit on one line.
+    r = run_cli("match", tmp_path / "scenes" / "planes", "-o", tmp_path / "verbose", "-v")
+    assert r.code == 0 and any(line.startswith("planes: row_align: tracks_found ") for line in r.err.splitlines())
 
 
 @pytest.mark.parametrize("scene, low, high", [("Motorcycle", -0.40, -0.25), ("Playtable", 0.25, 0.40)])

@@ -60,6 +60,11 @@ def finish_batch(result: BatchResult, record: RunRecord, record_path: Path | Non
     ok = [i for i in items if i.status == "ok"]
     if verbosity >= 0:
         for item in ok:
+            if verbosity >= 1:
+                # What the stages found (e.g. row_align's fit), one line per stage: -v only.
+                for stage, note in item.details.get("stage_notes", {}).items():
+                    facts = ", ".join(f"{key} {value}" for key, value in note.items())
+                    click.echo(f"{item.name}: {stage}: {facts}", err=True)
             for warning in item.details.get("warnings", ()):
                 click.echo(f"Warning: {item.name}: {warning}", err=True)
     skipped = [i for i in items if i.status == "skipped"]
