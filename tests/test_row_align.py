@@ -214,3 +214,20 @@ def test_the_default_gains_on_middeval3(shared_data, without_row_align):
                                               name=folder.name))
     with_, without = (weighted_average(results[k])["nonocc"]["bad2.0"] for k in ("with", "without"))
     assert with_ <= 17.1 and with_ <= without - 1.2, (with_, without)
+
+
+def test_a_given_plane_is_applied_without_tracking(without_row_align):
+    surfaces = scene_surfaces("planes", W, H, seed=0)
+    aligned, shifted = render(surfaces, W, H), render(surfaces, W, H, right_row_offset=0.4)
+    given = build_config(["default"], ["preprocess.row_align.measure=false", "preprocess.row_align.offset=0.4"])
+    result = match_pair(shifted["left"], shifted["right"], given, ndisp=48)
+    note = result.notes["row_align"]
+    assert note["given"] is True and note["applied"] is True and note["offset_px"] == 0.4 and note["tracks"] == 0
+    reference = match_pair(aligned["left"], aligned["right"], without_row_align, ndisp=48).disparity
+    assert _bad(result.disparity, shifted) < _bad(reference, aligned) + 0.3
+    # A zero plane leaves the pair as it is.
+    zero = build_config(["default"], ["preprocess.row_align.measure=false"])
+    unchanged = match_pair(shifted["left"], shifted["right"], zero, ndisp=48)
+    assert unchanged.notes["row_align"]["applied"] is False
+    np.testing.assert_array_equal(unchanged.disparity,
+                                  match_pair(shifted["left"], shifted["right"], without_row_align, ndisp=48).disparity)

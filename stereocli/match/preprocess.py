@@ -179,6 +179,10 @@ class RowAlignParams:
     max_spread: float = param(0.5, "the tracks' robust standard deviation about the plane above which the pair is left as it is (its rows are off in a way a plane does not describe: rectify it)", unit="px", low=0.0, high=50.0)
     min_offset: float = param(0.1, "smallest correction: a pair whose fitted offset stays below this everywhere is left as it is (the fit's own error on aligned pairs reaches 0.06 px, and resampling blurs a little)", unit="px", low=0.0, high=50.0)
     reduce: int = param(2, "track on the images reduced by this factor (1: full resolution, about three times the time, same MiddEval3 scores)", choices=(1, 2, 4))
+    measure: bool = param(True, "track corners and fit the plane; false: apply offset, tilt_x and tilt_y as given (a rig's known rows, e.g. from an earlier pair's params.json), without tracking")
+    offset: float = param(0.0, "with measure: false, how far below its left-view row a point appears in the right view at the image centre", unit="px", low=-50.0, high=50.0)
+    tilt_x: float = param(0.0, "with measure: false, the change of that offset across the image width", unit="px", low=-50.0, high=50.0)
+    tilt_y: float = param(0.0, "with measure: false, the change of that offset across the image height", unit="px", low=-50.0, high=50.0)
 
 
 @register("preprocess", "row_align", RowAlignParams)
@@ -197,11 +201,19 @@ def row_align(state: MatchState, p: RowAlignParams) -> None:
     ``min_offset`` px everywhere, is left unchanged. Only rows move, so the disparities stay
     those of the right view as given (the part of a rotation along the rows stays in them), and
     the pipeline moves the right-referenced map (``--right``) back onto the input's rows. The
-    fit goes into the match record (``stage_notes``). See :mod:`stereocli.features.vertical_offset`.
+    fit goes into the match record (``stage_notes``). ``measure: false`` applies ``offset``,
+    ``tilt_x`` and ``tilt_y`` as given instead (a rig whose rows are known: every pair of a batch
+    gets the same correction, without tracking). See :mod:`stereocli.features.vertical_offset`.
     """
-    from ..features.vertical_offset import fit_vertical_offset, resample_rows, track_rows
+    from ..features.vertical_offset import VerticalOffset, fit_vertical_offset, track_rows
 
     h, w = state.shape
+    if not p.measure:
+        plane = VerticalOffset(p.offset, p.tilt_x, p.tilt_y, w, h, 0, 0.0)
+        if plane.largest > 0:
+            _move_right_rows(state, plane)
+        state.notes["row_align"] = {**plane.as_dict(), "applied": plane.largest > 0, "given": True}
+        return
     lo, hi = state.min_disp - 1.0, state.min_disp + state.ndisp
     left_xy, right_xy = track_rows(state.gray("left"), state.gray("right"), disparity_range=(lo, hi),
                                    left_valid=state.left_valid, points=p.points, window=p.window, sigma=p.sigma,
@@ -220,9 +232,15 @@ def row_align(state: MatchState, p: RowAlignParams) -> None:
         note.update(plane.as_dict(), applied=False, reason=f"offset below min_offset {p.min_offset:g} px")
     else:
         note.update(plane.as_dict(), applied=True)
-        state.right = resample_rows(state.right, plane)
-        state.right_rows = plane
-        if state.right_valid is not None:
-            moved = resample_rows(state.right_valid.astype(np.uint8), plane, cv2.INTER_NEAREST)
-            state.right_valid = moved > 0
+        _move_right_rows(state, plane)
     state.notes["row_align"] = note
+
+
+def _move_right_rows(state: MatchState, plane) -> None:
+    """Resample the right view (and its mask) onto the left view's rows by ``plane``."""
+    from ..features.vertical_offset import resample_rows
+
+    state.right = resample_rows(state.right, plane)
+    state.right_rows = plane
+    if state.right_valid is not None:
+        state.right_valid = resample_rows(state.right_valid.astype(np.uint8), plane, cv2.INTER_NEAREST) > 0
