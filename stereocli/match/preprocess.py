@@ -11,12 +11,16 @@ on the whole image (before any row strips), with OpenCV.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 
 from ..registry import param, register
 from .state import MatchState
+
+if TYPE_CHECKING:
+    from ..features.vertical_offset import VerticalOffset
 
 
 def _apply(state: MatchState, func) -> None:
@@ -236,7 +240,7 @@ def row_align(state: MatchState, p: RowAlignParams) -> None:
     state.notes["row_align"] = note
 
 
-def _move_right_rows(state: MatchState, plane) -> None:
+def _move_right_rows(state: MatchState, plane: VerticalOffset) -> None:
     """Resample the right view (and its mask) onto the left view's rows by ``plane``."""
     from ..features.vertical_offset import resample_rows
 
