@@ -25,6 +25,8 @@ from typing import Literal
 import cv2
 import numpy as np
 
+from .points import grey_uint8
+
 #: Largest distance (px) between a track's start and where tracking back from its end lands.
 ROUND_TRIP_PX = 0.1
 #: Shi–Tomasi corners: quality relative to the strongest, and least distance apart (px).
@@ -82,9 +84,9 @@ class VerticalOffset:
 def normalised_uint8(grey: np.ndarray, sigma: float) -> np.ndarray:
     """(H, W) uint8: ``128 + 40·(I − mean)/std`` with Gaussian local statistics of scale
     ``sigma`` px (``sigma`` ≤ 0: the grey image itself, clipped). ``grey``: (H, W) float32."""
-    g = np.ascontiguousarray(grey, dtype=np.float32)
     if sigma <= 0:
-        return np.clip(np.rint(g), 0, 255).astype(np.uint8)
+        return grey_uint8(grey)
+    g = np.ascontiguousarray(grey, dtype=np.float32)
     mean = cv2.GaussianBlur(g, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
     square = cv2.GaussianBlur(g * g, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
     # The +4 (a standard deviation of 2 grey levels) keeps flat, noisy areas from being
@@ -121,7 +123,7 @@ def track_rows(left_grey: np.ndarray, right_grey: np.ndarray, *, disparity_range
         sigma = sigma / scale
         disparity_range = (disparity_range[0] / scale, disparity_range[1] / scale)
         max_offset = max_offset / scale
-    corners_from = np.clip(np.rint(left_grey), 0, 255).astype(np.uint8)
+    corners_from = grey_uint8(left_grey)
     mask = None
     if left_valid is not None:
         mask = cv2.erode(np.asarray(left_valid, np.uint8) * 255, np.ones((window, window), np.uint8))
@@ -132,8 +134,9 @@ def track_rows(left_grey: np.ndarray, right_grey: np.ndarray, *, disparity_range
     a, b = normalised_uint8(left_grey, sigma), normalised_uint8(right_grey, sigma)
     criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, ITERATIONS, STEP_PX)
     size = (int(window), int(window))
-    end, found, _ = cv2.calcOpticalFlowPyrLK(a, b, start, None, winSize=size, maxLevel=PYRAMID_LEVELS, criteria=criteria)
-    back, found_back, _ = cv2.calcOpticalFlowPyrLK(b, a, end, None, winSize=size, maxLevel=PYRAMID_LEVELS, criteria=criteria)
+    lucas_kanade = dict(winSize=size, maxLevel=PYRAMID_LEVELS, criteria=criteria)
+    end, found, _ = cv2.calcOpticalFlowPyrLK(a, b, start, None, **lucas_kanade)
+    back, found_back, _ = cv2.calcOpticalFlowPyrLK(b, a, end, None, **lucas_kanade)
     start, end, back = start[:, 0], end[:, 0], back[:, 0]
     disparity = start[:, 0] - end[:, 0]
     keep = ((found[:, 0] == 1) & (found_back[:, 0] == 1)

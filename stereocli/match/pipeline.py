@@ -324,17 +324,16 @@ def finish(prepared: PreparedPair, results: list[StripResult], config: PipelineC
     for call in map_stages:
         if call.stage.traits.needs_mirrored:
             t0 = time.perf_counter()
-            state.mirrored_disparity = _onto_right_rows(state, mirrored_disparity(prepared, config, call))
+            mirrored = mirrored_disparity(prepared, config, call)
+            state.mirrored_disparity = _right_map_rows(state, mirrored, to_input=False)
             key = f"refinement.{call.stage.name}.mirrored_pair"
             timings[key] = timings.get(key, 0.0) + time.perf_counter() - t0
         _timed(timings, f"refinement.{call.stage.name}", call.stage.func, state, call.params)
         state.mirrored_disparity = None
     clear_invalid_left(state)
-    if state.disparity_right is not None and state.right_rows is not None:
-        # The right map was matched on the right view with its rows moved: back to the input's.
-        from ..features.vertical_offset import move_map_rows
-
-        state.disparity_right = move_map_rows(state.disparity_right, state.right_rows.reversed())
+    if state.disparity_right is not None:
+        # The right map was matched on ``state.right``, whose rows a preprocess stage may have moved.
+        state.disparity_right = _right_map_rows(state, state.disparity_right, to_input=True)
     _current_config[0] = None
     strips, overlap = prepared.strips, prepared.overlap
     return MatchResult(
@@ -349,14 +348,16 @@ def finish(prepared: PreparedPair, results: list[StripResult], config: PipelineC
     )
 
 
-def _onto_right_rows(state: MatchState, right_map: np.ndarray) -> np.ndarray:
-    """A map referenced to the input right view, moved onto the rows of ``state.right`` when a
-    preprocess stage resampled them (``state.right_rows``), so the left map's matches read it."""
+def _right_map_rows(state: MatchState, right_map: np.ndarray, *, to_input: bool) -> np.ndarray:
+    """A right-referenced map moved between the input right view's rows and those of
+    ``state.right`` when a preprocess stage resampled them (``state.right_rows``): back to the
+    input's (``to_input``, for the ``--right`` output), or onto ``state.right``'s (where the left
+    map's matches read it). Unchanged when no stage moved the rows."""
     if state.right_rows is None:
         return right_map
     from ..features.vertical_offset import move_map_rows
 
-    return move_map_rows(right_map, state.right_rows)
+    return move_map_rows(right_map, state.right_rows.reversed() if to_input else state.right_rows)
 
 
 def mirrored_disparity(prepared: PreparedPair, config: PipelineConfig, call) -> np.ndarray:

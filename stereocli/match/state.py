@@ -48,11 +48,14 @@ image and ``rows_valid`` the slice of the strip's rows that is kept (the rest is
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .kernels.images import luma
+
+if TYPE_CHECKING:
+    from ..features.vertical_offset import VerticalOffset
 
 
 @dataclass
@@ -106,7 +109,7 @@ class MatchState:
     # Set by a stage that resampled the right view's rows (``row_align``): the
     # :class:`~stereocli.features.vertical_offset.VerticalOffset` it moved them by. The pipeline
     # moves right-referenced maps between ``right``'s rows and the input's with it.
-    right_rows: Any = None
+    right_rows: VerticalOffset | None = None
     gray_cache: dict = field(default_factory=dict, repr=False)  # which -> (image, its grey), see gray()
 
     @property
