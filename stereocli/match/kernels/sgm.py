@@ -33,6 +33,10 @@ Layout and numerics (see ``tests/test_kernels_sgm.py`` for the pure-numpy refere
 * The plan does not depend on the thread count, and every element is computed by one thread
   with integer arithmetic in a fixed order, so the result is bit-identical for any thread
   count.
+* The row functions are compiled with ``noalias`` (their array arguments are distinct arrays,
+  as for every chunk kernel). Without it LLVM guards each pixel's vector loop with run-time
+  tests of whether the path costs it writes overlap the costs and sums it reads; on
+  MiddEval3-Q those tests took a fifth of the windowed kernel's time (:mod:`.sgm_window`).
 """
 
 from __future__ import annotations
@@ -182,7 +186,7 @@ def _min_packed(s, base, k0: int, k1: int, rbest, rb, want_right: bool) -> np.ui
     return best
 
 
-@njit(cache=True)
+@njit(cache=True, noalias=True)
 def _horizontal_row(cf, mul, guide, y: int, forward: bool, add: bool, p1: int, p2: int, gamma: float, hf, hrow,
                     pens, tf, w: int, und) -> None:
     """The horizontal path of row ``y`` (from the left, or the right when not ``forward``):
@@ -209,7 +213,7 @@ def _horizontal_row(cf, mul, guide, y: int, forward: bool, add: bool, p1: int, p
                      np.uint64(j % 2) * hrow, tf, pix, add)
 
 
-@njit(cache=True)
+@njit(cache=True, noalias=True)
 def _direction_row(cf, mul, lf, tf, mins, pens, k: int, ring: int, ip: int, pr: int, shift: int, row0,
                    w: int, und, lrow, cur_row, prev_row, p1: int) -> None:
     """One row of the path from the rows above (below), direction ``k``: its predecessor of x
@@ -243,7 +247,7 @@ def _direction_row(cf, mul, lf, tf, mins, pens, k: int, ring: int, ip: int, pr: 
             mins[k, ring, x] = m
 
 
-@njit(cache=True)
+@njit(cache=True, noalias=True)
 def _pass_rows(cq, mul, guide, total, dirs, forward: bool, i0: int, i1: int, second: bool,
                p1: int, p2: int, gamma: float, lbuf, mins, hbuf, pens,
                disp, disp_r, rbest, min_disp: int) -> None:

@@ -34,6 +34,7 @@ tSGM ("SURE: photogrammetric surface reconstruction from imagery", 2012).
   more than one hypothesis from the winner (uniqueness and confidence).
 
 Every element is computed by one thread in a fixed order: bit-identical for any thread count.
+The row functions are compiled with ``noalias``, as in :mod:`.sgm`.
 """
 
 from __future__ import annotations
@@ -121,7 +122,7 @@ def _put_costs(costs, y: int, x: int, c0, c1, c2) -> None:
     costs[y, x, 2] = c2
 
 
-@njit(cache=True)
+@njit(cache=True, noalias=True)
 def _horizontal_row(cq, mul, pens, total, off_row, lo_row, hi_row, rlo_row, rhi_row, y: int, forward: bool, p1: int,
                     hbuf, blank, sentinel, keep, h_lo0: int, h_hi0: int, h_lo1: int, h_hi1: int):
     """The horizontal path of row ``y`` (from the left, or from the right when not ``forward``),
@@ -154,7 +155,7 @@ def _horizontal_row(cq, mul, pens, total, off_row, lo_row, hi_row, rlo_row, rhi_
     return h_lo0, h_hi0, h_lo1, h_hi1
 
 
-@njit(cache=True)
+@njit(cache=True, noalias=True)
 def _direction_row(cq, mul, pens, total, off_row, lo_row, hi_row, rlo_row, rhi_row, k: int, dy: int, dx: int,
                    y: int, i: int, forward: bool, p1: int, lbuf, lslot, mins, blank, sentinel) -> None:
     """Row ``y`` (pass row ``i``) of the path from the rows above (below), direction ``k`` =
@@ -188,7 +189,7 @@ def _direction_row(cq, mul, pens, total, off_row, lo_row, hi_row, rlo_row, rhi_r
         lslot[k, ring, x, 1] = rhi
 
 
-@njit(cache=True)
+@njit(cache=True, noalias=True)
 def _winners_row(total, nd: int, off_row, lo_row, hi_row, rlo_row, y: int, min_disp: int, disp, costs, second,
                  rbest, want_right: bool, want_second: bool) -> None:
     """The left winners of row ``y`` (and the right view's best so far in ``rbest``), with the
@@ -221,7 +222,7 @@ def _winners_row(total, nd: int, off_row, lo_row, hi_row, rlo_row, y: int, min_d
             second[y, x] = sec
 
 
-@njit(cache=True)
+@njit(cache=True, noalias=True)
 def _right_row(total, off_row, lo_row, hi_row, rlo_row, y: int, min_disp: int, disp_r, costs_r, rbest,
                want_right_costs: bool) -> None:
     """The right winners of row ``y`` from ``rbest`` and, if ``want_right_costs``, their sums."""
@@ -246,7 +247,7 @@ def _right_row(total, off_row, lo_row, hi_row, rlo_row, y: int, min_disp: int, d
         _put_costs(costs_r, y, xr, c0, c1, c2)
 
 
-@njit(cache=True)
+@njit(cache=True, noalias=True)
 def _pass_rows(cq, nd: int, mul, pens, total, offset, win_lo, win_hi, run_lo, run_hi, dirs, forward: bool, i0: int,
                i1: int, second_pass: bool, p1: int, lbuf, lslot, mins, hbuf, disp, disp_r, costs,
                costs_r, second, rbest, min_disp: int) -> None:
