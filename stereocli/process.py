@@ -17,6 +17,7 @@ allocator alone. A no-op where the C library has no ``mallopt`` (non-glibc).
 
 :func:`prepare_kernels` sets what the compiled kernels need before numba starts: idle kernel
 threads sleep instead of spinning (a busy machine), and a faster start (see its docstring).
+:func:`limit_blas_threads`, before numpy is imported, keeps BLAS to the calling thread.
 """
 
 from __future__ import annotations
@@ -102,6 +103,24 @@ class _NumbaStart(importlib.abc.MetaPathFinder):
 
 
 _kernels_prepared = False
+
+#: Environment of the BLAS libraries (numpy's OpenBLAS, and the one OpenCV bundles), set before
+#: numpy is imported (a value the user set wins). stereocli multiplies no large matrices (its
+#: largest BLAS call is an image's pixels times three luma weights; plane fits are a few
+#: hundred rows), but a multi-threaded OpenBLAS starts a thread per core when numpy is imported,
+#: and that thread spins, waiting for work: a tenth of the CPU time of a one-pair ``stereocli
+#: match`` process, on the cores the kernels need. With one BLAS thread there is none
+#: (``benchmarks/startup.py``: the pair process 3-4 % faster on an idle two-core machine).
+BLAS_THREAD_ENV = {"OPENBLAS_NUM_THREADS": "1"}
+
+
+def limit_blas_threads() -> bool:
+    """:data:`BLAS_THREAD_ENV`, unless numpy is imported already (then too late); True if applied."""
+    if "numpy" in sys.modules:
+        return False
+    for key, value in BLAS_THREAD_ENV.items():
+        os.environ.setdefault(key, value)
+    return True
 
 
 def prepare_kernels() -> None:

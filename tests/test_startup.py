@@ -58,6 +58,20 @@ def test_numba_starts_without_its_blas_probe_and_idle_threads_soon_sleep():
     assert _python(code, OMP_WAIT_POLICY="active").stdout.split()[0] == "active"
 
 
+def test_the_command_line_keeps_blas_to_one_thread_set_before_numpy_loads():
+    code = ("import os, sys\nfrom stereocli.cli.main import main\nloaded_early = 'numpy' in sys.modules\n"
+            "try:\n    main(['config', 'show'])\nexcept SystemExit:\n    pass\n"
+            "from stereocli.process import limit_blas_threads\n"
+            "print(loaded_early, 'numpy' in sys.modules, os.environ.get('OPENBLAS_NUM_THREADS'), limit_blas_threads())")
+    env = {k: v for k, v in __import__("os").environ.items() if k != "OPENBLAS_NUM_THREADS"}
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
+    # numpy is not loaded before main() sets the variable, the command loads it, and then it is
+    # too late to set it (limit_blas_threads says so).
+    assert done.stdout.split()[-4:] == ["False", "True", "1", "False"]
+    # A value the user set wins.
+    assert _python(code, OPENBLAS_NUM_THREADS="2").stdout.split()[-2] == "2"
+
+
 def test_numba_starts_without_its_cffi_support_and_cffi_still_imports_later():
     pytest.importorskip("cffi")  # installed by other packages; numba imports it when present
     code = ("import sys\nfrom stereocli.process import prepare_kernels\nprepare_kernels()\n"

@@ -123,6 +123,9 @@ def _warm_up_first_run() -> bool:
 def main(argv: list[str] | None = None) -> None:
     """Console entry point: run the group, map library errors and signals to exit codes, and
     keep third-party output apart (:func:`~stereocli.cli.errors.run_captured`)."""
+    from ..process import limit_blas_threads
+
+    limit_blas_threads()  # before any subcommand imports numpy
     from .errors import run_captured
 
     sys.exit(run_captured(cli, argv))
