@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -204,3 +205,27 @@ def test_the_warm_up_pair_takes_the_code_path_of_the_real_pair(monkeypatch, sets
                 masks=False)
     assert bool(windowed) == real
     assert real == (sets == ["optimizer.coarse_min_volume=1.0"])  # 160·200·64 = 2.0 M cells
+
+
+def test_warm_up_processes_import_this_package_whatever_the_working_directory(tmp_path):
+    # Started from a folder that holds another ``stereocli`` (a checkout beside an installed
+    # copy), the warm-up processes must still run this one: ``python -m`` looks in the working
+    # directory first. The decoy's warm-up module fails, so a worker that imports it fails the
+    # warm-up.
+    decoy = tmp_path / "decoy"
+    (decoy / "stereocli" / "match").mkdir(parents=True)
+    (decoy / "stereocli" / "__init__.py").write_text("")
+    (decoy / "stereocli" / "match" / "__init__.py").write_text("")
+    (decoy / "stereocli" / "match" / "warmup.py").write_text("raise SystemExit(3)\n")
+    script = tmp_path / "run_warm_up.py"
+    script.write_text(
+        "import sys\n"
+        f"sys.path.insert(0, {str(Path(warmup.__file__).resolve().parents[2])!r})\n"
+        "from stereocli.match import warmup\n"
+        "from stereocli.match.config import build_config\n"
+        "done = []\n"
+        "warmup.warm_up({'rt': build_config(['realtime'])}, jobs=2, report=lambda *a: done.append(a[1]))\n"
+        "print(sorted(done))\n")
+    run = subprocess.run([sys.executable, str(script)], cwd=decoy, capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert run.stdout.strip() == str(sorted(warmup.TASKS))

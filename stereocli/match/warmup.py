@@ -35,6 +35,7 @@ import subprocess
 import sys
 import time
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 
@@ -43,6 +44,12 @@ from .config import PipelineConfig, validate
 #: Tasks, each with its share of the compile time (seconds of the default preset on one core;
 #: for spreading them over processes).
 TASKS = {"volume_large": 9.5, "maps_2": 6.0, "volume_small": 5.6, "maps_1": 2.4}
+#: The folder that holds this ``stereocli`` package, the warm-up processes' working directory:
+#: ``python -m`` puts the working directory first on the module path, so a worker started from
+#: a checkout would import the checkout's sources rather than the installed package, compile
+#: their kernels into a cache of their own, and leave the run to compile its kernels again
+#: (the default preset's first run without the ahead-of-time build: 28.7 s instead of 11.4 s).
+PACKAGE_ROOT = Path(__file__).resolve().parents[2]
 #: (width, height, ndisp) of each task's synthetic pair.
 SIZES = {"volume_large": (448, 320, 96), "maps_1": (128, 96, 16), "maps_2": (128, 96, 16),
          "volume_small": (128, 96, 16)}
@@ -152,8 +159,9 @@ def warm_up(configs: dict[str, PipelineConfig], *, jobs: int = 1, report=None) -
     try:
         for slot in slots:
             payload = json.dumps([[label, task, configs[label].as_dict()] for label, task in slot])
-            worker = subprocess.Popen([sys.executable, "-m", "stereocli.match.warmup"], stdin=subprocess.PIPE,
-                                      stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+            worker = subprocess.Popen([sys.executable, "-m", "stereocli.match.warmup"], cwd=PACKAGE_ROOT,
+                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
+                                      text=True)
             workers.append(worker)
             worker.stdin.write(payload)
             worker.stdin.close()
