@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -32,7 +31,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "benchmarks"))
 
-from accuracy import DEFAULT_DATA, TURN_GAP_S, load_scenes, run_opencv  # noqa: E402
+from accuracy import DEFAULT_DATA, load_scenes, run_opencv, timed_in_turns  # noqa: E402
 from stereocli.match.config import build_config  # noqa: E402
 from stereocli.match.kernels import set_threads as set_kernel_threads  # noqa: E402
 from stereocli.match.pipeline import match_pair  # noqa: E402
@@ -58,16 +57,7 @@ def best_times(scene, configs: dict, repeat: int) -> dict[str, float]:
     runs = {name: (lambda cfg=cfg: match_pair(scene.left, scene.right, cfg, ndisp=scene.ndisp))
             for name, cfg in configs.items()}
     runs["3way"] = lambda: run_opencv("3way", scene)
-    for run in runs.values():  # warm-up
-        run()
-    best = {name: np.inf for name in runs}
-    for _ in range(repeat):
-        for name, run in runs.items():
-            time.sleep(TURN_GAP_S)
-            t0 = time.perf_counter()
-            run()
-            best[name] = min(best[name], time.perf_counter() - t0)
-    return best
+    return {name: seconds for name, (_, seconds) in timed_in_turns(runs, repeat).items()}
 
 
 def main(argv=None) -> int:
