@@ -109,8 +109,9 @@ _kernels_prepared = False
 #: largest BLAS call is an image's pixels times three luma weights; plane fits are a few
 #: hundred rows), but a multi-threaded OpenBLAS starts a thread per core when numpy is imported,
 #: and that thread spins, waiting for work: a tenth of the CPU time of a one-pair ``stereocli
-#: match`` process, on the cores the kernels need. With one BLAS thread there is none
-#: (``benchmarks/startup.py``: the pair process 3-4 % faster on an idle two-core machine).
+#: match`` process, on the cores the kernels need. With one BLAS thread there is none. On an
+#: idle two-core machine the pair process gets only 1-4 % faster (``benchmarks/startup.py``);
+#: the CPU time it frees counts when the machine is shared.
 BLAS_THREAD_ENV = {"OPENBLAS_NUM_THREADS": "1"}
 
 
