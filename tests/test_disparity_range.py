@@ -158,15 +158,44 @@ def test_misaligned_pair_warns_and_fails_on_request(run_cli, tmp_path):
     assert warning[0].endswith("rectify the pair first")  # fast has no row_align
     params = json.loads((tmp_path / "o" / "low" / "params.json").read_text())
     assert params["alignment"]["aligned"] is False and params["warnings"]
-    # The default's row_align moves the rows back, and the warning says so.
+    assert params["alignment"]["source"] == "sparse matches"
+    # The default's row_align measures the rows (no sparse matches) and moves them back, and the
+    # warning says so.
     r = run_cli("match", scene, "-o", tmp_path / "o1", "--ndisp", "32")
     warning = [line for line in r.err.splitlines() if line.startswith("Warning: low: rows not aligned")]
     assert r.code == 0 and len(warning) == 1 and "row_align moved the right view's rows by up to 6." in warning[0]
-    note = json.loads((tmp_path / "o1" / "low" / "params.json").read_text())["stage_notes"]["row_align"]
-    assert note["applied"] is True and abs(note["offset_px"] - 6.0) < 0.2
+    params = json.loads((tmp_path / "o1" / "low" / "params.json").read_text())
+    note = params["stage_notes"]["row_align"]
+    assert note["applied"] is True and note["measured"] is True and abs(note["offset_px"] - 6.0) < 0.2
+    assert params["alignment"]["source"] == "row_align" and params["alignment"]["aligned"] is False
+    assert abs(params["alignment"]["max_offset"] - note["largest_px"]) < 1e-3 and params["survey_seconds"] == 0.0
     r = run_cli("match", scene, "-o", tmp_path / "o2", "--ndisp", "32", "--require-aligned")
     assert r.code == 1 and "--require-aligned" in r.err and "rows not aligned" in r.err
     assert not (tmp_path / "o2" / "low" / "disp0.pfm").exists()
+
+
+def test_rows_measured_once_per_pair(run_cli, tmp_path, monkeypatch):
+    import stereocli.features.points as points
+
+    left, right, _ = slanted_pair(6.0, 18.0, seed=9)
+    scene = _write_pair(tmp_path / "flat", left, right)
+    calls = []
+    real = points.match_points
+    monkeypatch.setattr(points, "match_points", lambda *a, **k: calls.append(1) or real(*a, **k))
+    # The range known and row_align tracking: its fit is the measurement, no sparse matches.
+    r = run_cli("match", scene, "-o", tmp_path / "o", "--ndisp", "32")
+    alignment = json.loads((tmp_path / "o" / "flat" / "params.json").read_text())["alignment"]
+    assert r.code == 0 and calls == [] and "rows not aligned" not in r.err
+    assert alignment["source"] == "row_align" and alignment["aligned"] is True and alignment["max_offset"] < 0.5
+    # A fit that is no measurement (too few tracks for it) falls back to the sparse matches.
+    r = run_cli("match", scene, "-o", tmp_path / "o1", "--ndisp", "32", "--set", "preprocess.row_align.min_tracks=100000")
+    params = json.loads((tmp_path / "o1" / "flat" / "params.json").read_text())
+    assert r.code == 0 and len(calls) == 1 and params["stage_notes"]["row_align"]["measured"] is False
+    assert params["alignment"]["source"] == "sparse matches" and params["alignment"]["aligned"] is True
+    # Without a known range the survey matches anyway (for the estimate) and measures the rows.
+    r = run_cli("match", scene, "-o", tmp_path / "o2", "--ndisp", "auto")
+    alignment = json.loads((tmp_path / "o2" / "flat" / "params.json").read_text())["alignment"]
+    assert r.code == 0 and len(calls) == 2 and alignment["source"] == "sparse matches"
 
 
 def test_two_files_of_a_scene_folder_are_that_scene(run_cli, tmp_path):

@@ -14,9 +14,10 @@ Outputs per pair, in ``OUTDIR/<name>/``:
 
 The disparity range of a pair comes from ``--ndisp``/``--min-disp``, else from its
 ``calib.txt``, else (and always with ``--ndisp auto``) it is estimated from the images
-(:mod:`stereocli.features.disparity_range`). Every pair's row alignment is measured from sparse
-matches (:mod:`stereocli.features.alignment`): a misaligned pair is reported with a warning,
-or fails with ``require_aligned``.
+(:mod:`stereocli.features.disparity_range`). Every pair's row alignment is measured: by the
+config's ``row_align`` when it tracks the rows and the range is known, else (or when its fit is
+no measurement) from sparse matches (:mod:`stereocli.features.alignment`). A misaligned pair is
+reported with a warning, or fails with ``require_aligned`` (before any output is written).
 
 With ``split_strips`` the item task runs :func:`~stereocli.match.pipeline.prepare` and
 :func:`~stereocli.match.pipeline.finish` itself and sends each strip's volume stages
@@ -234,7 +235,12 @@ def match_item(item: WorkItem) -> dict:
     right_valid = _load_mask(item.inputs.get("right_valid"))
     load_seconds = time.perf_counter() - t_load
 
-    survey = survey_pair(item.name, left, right, opts, left_valid=left_valid, right_valid=right_valid)
+    # With the range known, a config whose row_align measures the rows leaves the alignment to it
+    # (its tracks are the better measurement, and the sparse matches would cost a sixth of a
+    # Q-size pair's matching time); the sparse matches measure them when it cannot.
+    rows_in_match = opts["ndisp"] is not None and _measures_rows(config)
+    survey = survey_pair(item.name, left, right, opts, left_valid=left_valid, right_valid=right_valid,
+                         measure_rows=not rows_in_match)
     min_disp, ndisp = survey["range"]["min_disp"], survey["range"]["ndisp"]
     strip_map = cluster_strip_map(opts["config"]) if opts.get("split_strips") else None
     flags = {"want_right": "right" in item.outputs, "keep_invalid": opts["keep_invalid"],
@@ -244,6 +250,9 @@ def match_item(item: WorkItem) -> dict:
     result = match_pair(left, right, config, min_disp=min_disp, ndisp=ndisp,
                         left_valid=left_valid, right_valid=right_valid, strip_map=strip_map, **flags)
     seconds = time.perf_counter() - t0
+    if rows_in_match:
+        survey.update(_rows_from_match(item.name, result.notes.get("row_align"), left, right, opts,
+                                       left_valid=left_valid, right_valid=right_valid))
 
     out = item.outputs
     write_pfm(out["disparity"], result.disparity)
@@ -309,27 +318,25 @@ def _rows_corrected(warnings: list[str], note: dict | None) -> list[str]:
 
 
 def survey_pair(name: str, left: np.ndarray, right: np.ndarray, opts: dict, *,
-                left_valid: np.ndarray | None = None, right_valid: np.ndarray | None = None) -> dict:
+                left_valid: np.ndarray | None = None, right_valid: np.ndarray | None = None,
+                measure_rows: bool = True) -> dict:
     """Row alignment of the pair, and its disparity range when it is to be estimated.
 
     Returns the run-record entries ``range`` (``min_disp``, ``ndisp``, ``source`` and, when
     estimated, the ``evidence``), ``alignment`` and ``warnings``, plus ``survey_seconds``.
     Raises :class:`DataError` when a range cannot be estimated, or when the rows are not aligned
-    and ``opts["require_aligned"]``.
+    and ``opts["require_aligned"]``. Without ``measure_rows`` and with the range known, nothing
+    is matched: ``alignment`` is None and the caller measures the rows
+    (:func:`_rows_from_match`).
     """
-    from ..features.alignment import row_alignment
     from ..features.points import match_points
 
     t0 = time.perf_counter()
-    matches = match_points(left, right, left_valid=left_valid, right_valid=right_valid)
-    alignment = row_alignment(matches)
-    warnings = []
-    if not alignment.aligned:
-        message = f"{ROWS_NOT_ALIGNED}: {alignment.describe()}; {RECTIFY_FIRST}"
-        if opts.get("require_aligned"):
-            raise DataError(f"{name}: {message} (--require-aligned)")
-        warnings.append(message)
     span = {"min_disp": opts["min_disp"], "ndisp": opts["ndisp"], "source": opts["range_source"]}
+    if opts["ndisp"] is not None and not measure_rows:
+        return {"range": span, "alignment": None, "warnings": [], "survey_seconds": 0.0}
+    matches = match_points(left, right, left_valid=left_valid, right_valid=right_valid)
+    rows = _rows_from_matches(name, matches, opts)
     if opts["ndisp"] is None:
         from ..features.disparity_range import estimate_range
 
@@ -338,8 +345,56 @@ def survey_pair(name: str, left: np.ndarray, right: np.ndarray, opts: dict, *,
         except DataError as exc:
             raise DataError(f"{name}: {exc}") from None
         span.update(min_disp=estimate.min_disp, ndisp=estimate.ndisp, evidence=estimate.as_dict())
-    return {"range": span, "alignment": alignment.as_dict(), "warnings": warnings,
-            "survey_seconds": round(time.perf_counter() - t0, 4)}
+    return {"range": span, **rows, "survey_seconds": round(time.perf_counter() - t0, 4)}
+
+
+def _rows_from_matches(name: str, matches, opts: dict) -> dict:
+    """``alignment`` and ``warnings`` from the pair's sparse matches (see :func:`_row_warnings`)."""
+    from ..features.alignment import row_alignment
+
+    alignment = row_alignment(matches)
+    return {"alignment": {"source": "sparse matches", **alignment.as_dict()},
+            "warnings": _row_warnings(name, alignment.aligned, alignment.describe(), opts)}
+
+
+def _row_warnings(name: str, aligned: bool, description: str, opts: dict) -> list[str]:
+    """The rows warning of a misaligned pair (none for an aligned one); raises
+    :class:`DataError` instead with ``opts["require_aligned"]``."""
+    if aligned:
+        return []
+    message = f"{ROWS_NOT_ALIGNED}: {description}; {RECTIFY_FIRST}"
+    if opts.get("require_aligned"):
+        raise DataError(f"{name}: {message} (--require-aligned)")
+    return [message]
+
+
+def _measures_rows(config) -> bool:
+    """Whether the validated ``config`` starts by measuring the pair's rows (``row_align`` with
+    ``measure``)."""
+    return any(call.stage.name == "row_align" and call.params.measure for call in config.preprocess)
+
+
+def _rows_from_match(name: str, note: dict | None, left: np.ndarray, right: np.ndarray, opts: dict, *,
+                     left_valid: np.ndarray | None = None, right_valid: np.ndarray | None = None) -> dict:
+    """``alignment`` and ``warnings`` from ``row_align``'s fit during the match (``note``, its
+    ``stage_notes`` entry) when it measured the rows, else from sparse matches as the survey
+    takes them (too few tracks, or tracks that scatter about their plane). A pair counts as
+    misaligned when the fitted plane departs from the rows by more than the survey's threshold
+    anywhere in the image."""
+    from ..features.alignment import DEFAULT_THRESHOLD
+
+    if not note or not note.get("measured"):
+        from ..features.points import match_points
+
+        return _rows_from_matches(name, match_points(left, right, left_valid=left_valid, right_valid=right_valid),
+                                  opts)
+    largest = float(note["largest_px"])
+    aligned = largest <= DEFAULT_THRESHOLD
+    description = (f"vertical disparity up to {largest:.1f} px (row_align's plane through {note['tracks']} tracks, "
+                   f"offset {note['offset_px']:+.2f} px at the centre)")
+    return {"alignment": {"source": "row_align", "tracks": note["tracks"], "max_offset": round(largest, 3),
+                          "threshold": DEFAULT_THRESHOLD, "aligned": aligned},
+            "warnings": _row_warnings(name, aligned, description, opts)}
 
 
 def cluster_strip_map(config_dict: dict) -> StripMap:

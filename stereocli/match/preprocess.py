@@ -223,19 +223,20 @@ def row_align(state: MatchState, p: RowAlignParams) -> None:
                                    left_valid=state.left_valid, points=p.points, window=p.window, sigma=p.sigma,
                                    max_offset=p.max_offset, scale=p.reduce)
     plane = fit_vertical_offset(left_xy, right_xy, w, h, model=p.model, min_tracks=p.min_tracks)
+    # ``measured``: the plane is a measurement of the rows (enough tracks, close to it), whether
+    # or not it was applied; the match job then takes the pair's row alignment from it.
     note: dict = {"tracks_found": int(len(left_xy))}
     if plane is None:
-        note["applied"] = False
-        note["reason"] = f"fewer than {p.min_tracks} tracks"
+        note.update(applied=False, measured=False, reason=f"fewer than {p.min_tracks} tracks")
     elif plane.spread > p.max_spread:
-        note.update(plane.as_dict(), applied=False, reason=f"tracks scatter {plane.spread:.2f} px about the plane, "
-                                                            f"beyond max_spread {p.max_spread:g} px")
+        note.update(plane.as_dict(), applied=False, measured=False,
+                    reason=f"tracks scatter {plane.spread:.2f} px about the plane, beyond max_spread {p.max_spread:g} px")
     elif plane.largest > p.max_offset:
-        note.update(plane.as_dict(), applied=False, reason=f"offset beyond max_offset {p.max_offset:g} px")
+        note.update(plane.as_dict(), applied=False, measured=True, reason=f"offset beyond max_offset {p.max_offset:g} px")
     elif plane.largest < p.min_offset:
-        note.update(plane.as_dict(), applied=False, reason=f"offset below min_offset {p.min_offset:g} px")
+        note.update(plane.as_dict(), applied=False, measured=True, reason=f"offset below min_offset {p.min_offset:g} px")
     else:
-        note.update(plane.as_dict(), applied=True)
+        note.update(plane.as_dict(), applied=True, measured=True)
         _move_right_rows(state, plane)
     state.notes["row_align"] = note
 
