@@ -236,8 +236,8 @@ def match_item(item: WorkItem) -> dict:
     load_seconds = time.perf_counter() - t_load
 
     # With the range known, a config whose row_align measures the rows leaves the alignment to it
-    # (its tracks are the better measurement, and the sparse matches would cost a sixth of a
-    # Q-size pair's matching time); the sparse matches measure them when it cannot.
+    # (its tracks are the better measurement, and the sparse matches would add about an eighth
+    # to a Q-size pair's matching time); the sparse matches measure them when it cannot.
     rows_in_match = opts["ndisp"] is not None and _measures_rows(config)
     survey = survey_pair(item.name, left, right, opts, left_valid=left_valid, right_valid=right_valid,
                          measure_rows=not rows_in_match)
@@ -369,8 +369,8 @@ def _row_warnings(name: str, aligned: bool, description: str, opts: dict) -> lis
 
 
 def _measures_rows(config) -> bool:
-    """Whether the validated ``config`` starts by measuring the pair's rows (``row_align`` with
-    ``measure``)."""
+    """Whether the validated ``config`` measures the pair's rows in its preprocessing
+    (``row_align`` with ``measure``)."""
     return any(call.stage.name == "row_align" and call.params.measure for call in config.preprocess)
 
 
