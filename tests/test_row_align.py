@@ -161,18 +161,32 @@ def test_middeval3_row_offsets(shared_data, scene, low, high):
 def test_tracks_do_not_depend_on_the_thread_count():
     import cv2
 
+    from stereocli.match.kernels import _threads, set_threads
+
     scene = render(scene_surfaces("curved", W, H, seed=0), W, H, right_row_offset=0.3)
     runs = []
-    before = cv2.getNumThreads()
+    before = cv2.getNumThreads(), _threads[0]
     try:
+        # OpenCV's threads, and the kernel threads that run the two views' preparation side by side.
         for threads in (1, 2):
             cv2.setNumThreads(threads)
+            set_threads(threads)
             runs.append(track_rows(_grey(scene["left"]), _grey(scene["right"]), disparity_range=(-1, 48), scale=2))
     finally:
-        cv2.setNumThreads(before)
+        cv2.setNumThreads(before[0])
+        set_threads(before[1])
     assert len(runs[0][0]) > 30
     for a, b in zip(runs[0], runs[1]):
         np.testing.assert_array_equal(a, b)
+
+
+def test_no_tracks_outside_the_disparity_range():
+    scene = render(scene_surfaces("planes", W, H, seed=0), W, H, right_row_offset=0.4)
+    inside = track_rows(_grey(scene["left"]), _grey(scene["right"]), disparity_range=(-1, 48), scale=2)
+    assert len(inside[0]) > 30
+    # The scene's disparities lie within [0, 48): a range beyond them leaves no track to go back.
+    left, right = track_rows(_grey(scene["left"]), _grey(scene["right"]), disparity_range=(100, 200), scale=2)
+    assert left.shape == (0, 2) and right.shape == (0, 2)
 
 
 def test_the_right_map_keeps_the_input_right_views_rows():

@@ -141,13 +141,16 @@ def track_rows(left_grey: np.ndarray, right_grey: np.ndarray, *, disparity_range
     size = (int(window), int(window))
     lucas_kanade = dict(winSize=size, maxLevel=PYRAMID_LEVELS, criteria=criteria)
     end, found, _ = cv2.calcOpticalFlowPyrLK(a, b, start, None, **lucas_kanade)
-    back, found_back, _ = cv2.calcOpticalFlowPyrLK(b, a, end, None, **lucas_kanade)
+    disparity = start[:, 0, 0] - end[:, 0, 0]
+    plausible = ((found[:, 0] == 1) & (disparity >= disparity_range[0]) & (disparity <= disparity_range[1])
+                 & (np.abs(end[:, 0, 1] - start[:, 0, 1]) <= max_offset + 1.0))
+    # Only the plausible tracks go back (each point is tracked on its own, so the others could
+    # only be dropped): on MiddEval3-Q a third to a half of the corners fail here.
+    start, end = start[plausible], end[plausible]
+    back, found_back, _ = (cv2.calcOpticalFlowPyrLK(b, a, end, None, **lucas_kanade) if len(end)
+                           else (end, np.zeros((0, 1), np.uint8), None))
     start, end, back = start[:, 0], end[:, 0], back[:, 0]
-    disparity = start[:, 0] - end[:, 0]
-    keep = ((found[:, 0] == 1) & (found_back[:, 0] == 1)
-            & (np.hypot(*(back - start).T) < ROUND_TRIP_PX / scale)
-            & (disparity >= disparity_range[0]) & (disparity <= disparity_range[1])
-            & (np.abs(end[:, 1] - start[:, 1]) <= max_offset + 1.0))
+    keep = (found_back[:, 0] == 1) & (np.hypot(*(back - start).T) < ROUND_TRIP_PX / scale)
     if scale > 1:
         # Pixel centres: reduced pixel i covers full-resolution pixels scale·i ... scale·i + scale − 1.
         return scale * (start[keep] + 0.5) - 0.5, scale * (end[keep] + 0.5) - 0.5
