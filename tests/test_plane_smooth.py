@@ -14,9 +14,10 @@ from stereocli.match.state import MatchState
 INF = np.float32(np.inf)
 
 
-def line_fit_reference(disp, image, radius, sigma_space, color_range, gate, vertical, clamp=True):
+def line_fit_reference(disp, image, radius, sigma_space, color_range, gate, vertical, clamp=True, step=1):
     """One pass of the kernel, pixel by pixel in float64: a weighted least-squares line through
-    the gated neighbours on the row (or column), evaluated at the centre."""
+    the gated neighbours on the row (or column) at offsets that are multiples of ``step``,
+    evaluated at the centre."""
     h, w = disp.shape
     out = disp.copy()
     for y in range(h):
@@ -26,6 +27,8 @@ def line_fit_reference(disp, image, radius, sigma_space, color_range, gate, vert
                 continue
             ts, vs, ws = [], [], []
             for t in range(-radius, radius + 1):
+                if t % step:
+                    continue
                 yy, xx = (y + t, x) if vertical else (y, x + t)
                 if not (0 <= yy < h and 0 <= xx < w):
                     continue
@@ -67,6 +70,22 @@ def test_kernel_matches_numpy_reference_with_holes_edges_and_colour():
     np.testing.assert_allclose(got[finite], want[finite], rtol=0, atol=2e-4)
 
 
+@pytest.mark.parametrize("radius", [4, 5])
+def test_every_second_neighbour_matches_the_reference(radius):
+    rng = np.random.default_rng(4)
+    h, w = 14, 19
+    image = rng.uniform(0, 60, (h, w, 3)).astype(np.float32)
+    disp = (rng.uniform(4, 6, (h, w)) + np.where(np.arange(w) > 9, 3.0, 0.0)).astype(np.float32)
+    disp[rng.random((h, w)) < 0.15] = INF
+    args = (radius, 3.0, 50.0, 1.0)
+    want = line_fit_reference(line_fit_reference(disp, image, *args, False, step=2), image, *args, True, step=2)
+    got = kr.plane_smooth(disp, image, *args, step=2)
+    finite = np.isfinite(disp)
+    np.testing.assert_allclose(got[finite], want[finite], rtol=0, atol=2e-4)
+    every = kr.plane_smooth(disp, image, *args)
+    assert np.abs(got[finite] - every[finite]).max() > 0.01  # the skipped neighbours did count before
+
+
 def test_recovers_a_slanted_plane_from_staircased_disparities():
     # A plane d = 20 + 0.13·x − 0.07·y seen through pixel-locked sub-pixel estimates: each value
     # pulled halfway towards its nearest integer (errors up to ±0.25 px, as on SGM sums).
@@ -79,6 +98,9 @@ def test_recovers_a_slanted_plane_from_staircased_disparities():
     inner = (slice(8, -8), slice(8, -8))
     assert np.abs(locked - truth)[inner].max() > 0.2
     assert np.abs(out - truth)[inner].max() < 0.02
+    # Every second neighbour (the `fast` preset's setting) fits the same plane.
+    out = run(locked, image, radius=8, sigma_space=8.0, step=2)
+    assert np.abs(out - truth)[inner].max() < 0.05
 
 
 def test_depth_edges_are_kept_by_the_gate():

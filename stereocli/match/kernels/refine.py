@@ -392,7 +392,7 @@ def joint_bilateral(disp, guide, radius: int, sigma_space: float, sigma_color: f
 
 
 @chunk_kernel
-def _line_fit_pass_rows(disp, image, radius: int, vertical: bool, sigma_space: float, color_range: float,
+def _line_fit_pass_rows(disp, image, radius: int, step: int, vertical: bool, sigma_space: float, color_range: float,
                         gate: float, out, y0: int, y1: int) -> None:
     """:func:`_line_fit_pass` on rows ``y0`` to ``y1`` (exclusive) of ``out``."""
     h, w = disp.shape
@@ -417,7 +417,7 @@ def _line_fit_pass_rows(disp, image, radius: int, vertical: bool, sigma_space: f
             sv[x] = 0.0
             stv[x] = 0.0
         d0 = disp[y]
-        for t in range(-radius, radius + 1):
+        for t in range(-(radius // step) * step, radius + 1, step):
             yy = y + t * step_y
             dx = t * step_x
             if yy < 0 or yy >= h:
@@ -475,17 +475,18 @@ def _line_fit_pass_rows(disp, image, radius: int, vertical: bool, sigma_space: f
             out[y, x] = d0[x] + min(max(corr, -gate), gate)
 
 
-def _line_fit_pass(disp, image, radius: int, vertical: bool, sigma_space: float, color_range: float,
+def _line_fit_pass(disp, image, radius: int, step: int, vertical: bool, sigma_space: float, color_range: float,
                    gate: float) -> np.ndarray:
     # One 1-D pass of plane_smooth, along rows (vertical=False) or columns. Loops run over
     # whole rows for each offset t so they vectorise.
     out = np.empty(disp.shape, disp.dtype)
-    for_rows(_line_fit_pass_rows, disp.shape[0], disp, image, radius, vertical, sigma_space, color_range, gate, out)
+    for_rows(_line_fit_pass_rows, disp.shape[0], disp, image, radius, step, vertical, sigma_space, color_range, gate,
+             out)
     return out
 
 
 def plane_smooth(disp: np.ndarray, image: np.ndarray, radius: int, sigma_space: float, color_range: float,
-                 gate: float) -> np.ndarray:
+                 gate: float, step: int = 1) -> np.ndarray:
     """Edge-aware sub-pixel smoothing by local weighted line fits, along rows then columns.
 
     Each valid pixel takes the value at its own position of the least-squares line through
@@ -496,11 +497,13 @@ def plane_smooth(disp: np.ndarray, image: np.ndarray, radius: int, sigma_space: 
     (Tukey's biweight: close to a Gaussian of σ = R/2 near 0, exactly 0 beyond R). Each pass
     moves a pixel by at most ``gate``. Two 1-D fits follow a slanted plane like one 2-D fit at
     a fraction of its cost; on a fronto-parallel surface the result is the gated,
-    colour-weighted mean. ``disp`` (H, W) float32 px, +inf invalid (stays so).
+    colour-weighted mean. ``step`` > 1 fits through every step-th neighbour only (offsets that
+    are multiples of it; the pixel itself is one). ``disp`` (H, W) float32 px, +inf invalid
+    (stays so).
     """
     planes = channel_planes(image)
-    out = _line_fit_pass(disp, planes, radius, False, sigma_space, color_range, gate)
-    return _line_fit_pass(out, planes, radius, True, sigma_space, color_range, gate)
+    out = _line_fit_pass(disp, planes, radius, step, False, sigma_space, color_range, gate)
+    return _line_fit_pass(out, planes, radius, step, True, sigma_space, color_range, gate)
 
 
 @njit(cache=True, inline="always")
