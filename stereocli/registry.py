@@ -75,6 +75,12 @@ class StageTraits:
     first); give them a docstring, which ``stereocli stages -v`` prints.
     """
 
+    # -- every stage --------------------------------------------------------------------------
+    #: Reads the right view's colour channels. False: only its grey (``state.gray("right")``),
+    #: or not at all. When no stage of a config reads them, the pipeline turns the right view
+    #: grey before the first stage, so that preprocessing moves one channel instead of three.
+    reads_right_colour: bool = True
+
     # -- refinement stages --------------------------------------------------------------------
     #: Reads the cost volume: runs inside each row strip, before the volume is dropped.
     needs_cost: bool = False

@@ -245,3 +245,30 @@ def test_a_given_plane_is_applied_without_tracking(without_row_align):
     assert unchanged.notes["row_align"]["applied"] is False
     np.testing.assert_array_equal(unchanged.disparity,
                                   match_pair(shifted["left"], shifted["right"], without_row_align, ndisp=48).disparity)
+
+
+def test_the_right_view_goes_grey_when_no_stage_reads_its_colour(monkeypatch, tmp_path):
+    import stereocli.match.pipeline as pipeline
+    from stereocli.match.kernels.images import luma
+
+    scene = render(scene_surfaces("curved", W, H, seed=0), W, H, right_row_offset=0.4)
+    default = build_config(["default"])
+    # Every default stage reads the right view as grey at most: it is grey from the start, the
+    # same luma the stages would take, and row_align moves that one channel.
+    prepared = pipeline.prepare(scene["left"], scene["right"], default, ndisp=48)
+    assert prepared.state.right.shape == (H, W) and prepared.state.left.shape == (H, W, 3)
+    assert prepared.state.notes["row_align"]["applied"] is True
+    no_preprocess = tmp_path / "no_preprocess.yaml"
+    no_preprocess.write_text("preprocess: []\n")
+    unmoved = pipeline.prepare(scene["left"], scene["right"], build_config([str(no_preprocess)]), ndisp=48)
+    np.testing.assert_array_equal(unmoved.state.right, luma(scene["right"].astype(np.float32)))
+    # A stage that reads colour (absolute differences of the three channels) keeps it.
+    colour = tmp_path / "ad.yaml"
+    colour.write_text("cost: {name: ad}\noptimizer: {name: wta}\nrefinement: []\n")
+    assert pipeline.prepare(scene["left"], scene["right"], build_config([str(colour)]), ndisp=48).state.right.ndim == 3
+    # Moving the grey instead of the colours and taking its luma changes the map only by rounding.
+    grey = match_pair(scene["left"], scene["right"], default, ndisp=48).disparity
+    monkeypatch.setattr(pipeline, "_reads_right_colour", lambda config, refinements: True)
+    coloured = match_pair(scene["left"], scene["right"], default, ndisp=48).disparity
+    assert np.mean(np.abs(grey - coloured) <= 0.01) > 0.995
+    assert abs(_bad(grey, scene) - _bad(coloured, scene)) < 0.2

@@ -386,7 +386,7 @@ def _census_windowed(state: MatchState, p: CensusParams, runs) -> tuple[np.ndarr
 
 # With ``state.wants.integer_cost`` the Hamming distances stay uint8 (1 byte per cell).
 @register("cost", "census", CensusParams,
-          traits=StageTraits(integer_cost_itemsize=1, windowed=_census_windowed))
+          traits=StageTraits(integer_cost_itemsize=1, windowed=_census_windowed, reads_right_colour=False))
 def census_cost(state: MatchState, p: CensusParams) -> None:
     """Hamming distance of census transforms (Zabih & Woodfill 1994) on the grey images.
 

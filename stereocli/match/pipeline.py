@@ -248,6 +248,10 @@ def prepare(
     for image, valid in ((state.left, state.left_valid), (state.right, state.right_valid)):
         if valid is not None:
             extend_rows_into_invalid(image, valid)
+    if state.right.ndim == 3 and not _reads_right_colour(config, refinements):
+        # Its grey is all any stage will read (the same luma it would take later): preprocessing
+        # then moves one channel instead of three (row_align: 1.3 ms instead of 3 on a Q pair).
+        state.right = state.gray("right")
     for call in config.preprocess:
         _timed(timings, f"preprocess.{call.stage.name}", call.stage.func, state, call.params)
     strips = plan_strips(config, shape[0], shape[1], ndisp)
@@ -255,6 +259,13 @@ def prepare(
     mirrored = any(c.stage.traits.needs_mirrored for c in refinements)
     inputs = (left, right, left_valid, right_valid) if mirrored else None
     return PreparedPair(state, strips, overlap, keep_invalid, timings, inputs)
+
+
+def _reads_right_colour(config: PipelineConfig, refinements: list) -> bool:
+    """Whether any stage of ``config`` that runs reads the right view's colour channels
+    (:attr:`~stereocli.registry.StageTraits.reads_right_colour`)."""
+    calls = [*config.preprocess, config.cost, *config.aggregation, config.optimizer, *refinements]
+    return any(call.stage.traits.reads_right_colour for call in calls)
 
 
 def strip_input(prepared: PreparedPair, y0: int, y1: int) -> MatchState:

@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
-from ..registry import param, register
+from ..registry import StageTraits, param, register
 from .state import MatchState
 
 if TYPE_CHECKING:
@@ -189,7 +189,7 @@ class RowAlignParams:
     tilt_y: float = param(0.0, "with measure: false, the change of that offset across the image height", unit="px", low=-50.0, high=50.0)
 
 
-@register("preprocess", "row_align", RowAlignParams)
+@register("preprocess", "row_align", RowAlignParams, traits=StageTraits(reads_right_colour=False))
 def row_align(state: MatchState, p: RowAlignParams) -> None:
     """Resample the right view onto the left view's rows: corrects a residual vertical offset.
 

@@ -43,7 +43,7 @@ def _refines_right_view(state: MatchState, p: SubpixelParams) -> bool:
 
 @register("refinement", "subpixel", SubpixelParams,
           traits=StageTraits(needs_cost=True, on_winner_costs=_subpixel_on_winner_costs,
-                             needs_right_costs=_refines_right_view))
+                             needs_right_costs=_refines_right_view, reads_right_colour=False))
 def subpixel(state: MatchState, p: SubpixelParams) -> None:
     """Sub-pixel disparity from the costs around the winner (left view; right view too if kept).
 
@@ -72,7 +72,7 @@ def _compares_integer(p: LRCheckParams) -> bool:
 
 
 @register("refinement", "lr_check", LRCheckParams,
-          traits=StageTraits(needs_right=True, keeps_integer=_compares_integer))
+          traits=StageTraits(needs_right=True, keeps_integer=_compares_integer, reads_right_colour=False))
 def lr_check(state: MatchState, p: LRCheckParams) -> None:
     """Left-right consistency check: invalidate pixels the right view's disparity contradicts.
 
@@ -100,7 +100,7 @@ class MedianParams:
     size: int = param(3, "window side (odd)", unit="px", low=3, high=15)
 
 
-@register("refinement", "median", MedianParams)
+@register("refinement", "median", MedianParams, traits=StageTraits(reads_right_colour=False))
 def median(state: MatchState, p: MedianParams) -> None:
     """Median filter over valid disparities only (holes neither spread nor get filled)."""
     if p.size % 2 == 0:
@@ -108,7 +108,7 @@ def median(state: MatchState, p: MedianParams) -> None:
     state.disparity = kr.median_valid(state.disparity, p.size // 2)
 
 
-@register("refinement", "fill", traits=StageTraits(fills_holes=True))
+@register("refinement", "fill", traits=StageTraits(fills_holes=True, reads_right_colour=False))
 def fill(state: MatchState, params) -> None:
     """Fill invalid pixels along scanlines with the background (smaller) neighbouring disparity.
 
@@ -167,7 +167,7 @@ def _confidence_wanted(state: MatchState, params) -> bool:
 
 @register("refinement", "confidence", ConfidenceParams,
           traits=StageTraits(needs_cost=True, on_winner_costs=_confidence_on_winner_costs,
-                             needs_second_best=_confidence_wanted))
+                             needs_second_best=_confidence_wanted, reads_right_colour=False))
 def confidence(state: MatchState, p: ConfidenceParams) -> None:
     """Per-pixel confidence in [0, 1] (``match --confidence``): cost uniqueness × LR agreement.
 
@@ -258,7 +258,7 @@ class PlaneSmoothParams:
     step: int = param(1, "fit through every step-th neighbour of the segment (2: half the work)", low=1, high=10)
 
 
-@register("refinement", "plane_smooth", PlaneSmoothParams)
+@register("refinement", "plane_smooth", PlaneSmoothParams, traits=StageTraits(reads_right_colour=False))
 def plane_smooth(state: MatchState, p: PlaneSmoothParams) -> None:
     """Edge-aware sub-pixel smoothing by local line fits along rows, then columns.
 

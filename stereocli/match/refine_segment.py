@@ -16,7 +16,7 @@ from .cost import _channels
 from .kernels import maps as km
 from .kernels import segment as ks
 from ..errors import ConfigError
-from ..registry import param, register
+from ..registry import StageTraits, param, register
 from .state import MatchState
 
 
@@ -106,7 +106,7 @@ class GeodesicVoteParams:
     color: bool = param(True, "colour differences on the colour image; false: on the grey image")
 
 
-@register("refinement", "geodesic_vote", GeodesicVoteParams)
+@register("refinement", "geodesic_vote", GeodesicVoteParams, traits=StageTraits(reads_right_colour=False))
 def geodesic_vote(state: MatchState, p: GeodesicVoteParams) -> None:
     """Put depth edges back on colour edges: pixels beside a disparity step take the disparity
     their colour-connected neighbours along the row, then the column, support most.
