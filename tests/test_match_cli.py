@@ -92,7 +92,10 @@ def test_bad_inputs_one_line_errors(run_cli, tmp_path, small_scenes):
     assert r.code == 1 and "differ in size" in r.err and "Traceback" not in r.err
     (tmp_path / "c.png").write_bytes(b"\x89PNG\r\n\x1a\n garbage")
     r = run_cli("match", tmp_path / "a.png", tmp_path / "c.png", "-o", tmp_path / "o2", "--ndisp", "8")
-    assert r.code == 1 and "unreadable or truncated" in r.err
+    assert r.code == 1 and "c.png: unreadable or truncated" in r.err and "Traceback" not in r.err
+    # The views are decoded side by side: whichever is broken is the one named.
+    r = run_cli("match", tmp_path / "c.png", tmp_path / "a.png", "-o", tmp_path / "o2", "--ndisp", "8")
+    assert r.code == 1 and "c.png: unreadable or truncated" in r.err and "Traceback" not in r.err
     empty = tmp_path / "empty"
     empty.mkdir()
     r = run_cli("match", empty, "-o", tmp_path / "o3", "--ndisp", "8")
