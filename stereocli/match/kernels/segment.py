@@ -790,6 +790,17 @@ def _heavier(best: int, best_m: float, best_s: float, b: int, m: float, s: float
 
 
 @njit(cache=True, inline="always")
+def _plus_kept(mm, ss, entry, scale: float, b: int, m: float, s: float):
+    # (m, s) plus bin b's true mass and disparity sum in a running vote's kept bins, if it
+    # keeps b (``entry``: the entry holding each bin, −1 for the others).
+    j = entry[b]
+    if j >= 0:
+        m += mm[j] * scale
+        s += ss[j] * scale
+    return m, s
+
+
+@njit(cache=True, inline="always")
 def _holds(bins, n: int, b: int) -> bool:
     # Whether the first n entries of bins hold b.
     for i in range(n):
@@ -902,17 +913,10 @@ def _vote_chunk(disp, bins, packed, centre, passed, min_change: int, max_bins: i
                         if b == k:
                             m, s = 1.0 + m, d + s
                             own_seen = True
-                        j = entry[b]
-                        if j >= 0:
-                            m += mm[j] * scale
-                            s += ss[j] * scale
+                        m, s = _plus_kept(mm, ss, entry, scale, b, m, s)
                         best, best_m, best_s = _heavier(best, best_m, best_s, b, m, s)
                     if not own_seen:
-                        m, s = 1.0, np.float64(d)
-                        j = entry[k]
-                        if j >= 0:
-                            m += mm[j] * scale
-                            s += ss[j] * scale
+                        m, s = _plus_kept(mm, ss, entry, scale, k, 1.0, np.float64(d))
                         best, best_m, best_s = _heavier(best, best_m, best_s, k, m, s)
                     for i in range(n):  # backward bins neither own nor forward
                         b = kk[i]
