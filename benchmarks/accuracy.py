@@ -193,9 +193,19 @@ def timed(fn, repeat: int, warm: bool) -> tuple[np.ndarray, float]:
 TURN_GAP_S = 0.01
 
 
-def timed_in_turns(fns: dict, repeat: int) -> dict[str, tuple[np.ndarray, float]]:
+def presets_and_3way(scene: Scene, configs: dict) -> dict:
+    """``{preset: run, "3way": run}`` for :func:`timed_in_turns`: each validated config of
+    ``configs`` matching ``scene``, and OpenCV SGBM 3WAY on it."""
+    runs = {name: (lambda cfg=cfg: match_pair(scene.left, scene.right, cfg, ndisp=scene.ndisp))
+            for name, cfg in configs.items()}
+    runs["3way"] = lambda: run_opencv("3way", scene)
+    return runs
+
+
+def timed_in_turns(fns: dict, repeat: int, each=None) -> dict[str, tuple[np.ndarray, float]]:
     """Each function warmed up once, then all of them in turns for ``repeat`` rounds; returns
-    ``{name: (last output, best seconds)}``."""
+    ``{name: (last output, best seconds)}``. ``each(name, output, seconds)``, if given, sees
+    every timed call (e.g. to keep the best of a result's own timings)."""
     outs = {name: fn() for name, fn in fns.items()}
     best = dict.fromkeys(fns, np.inf)
     for _ in range(repeat):
@@ -203,7 +213,10 @@ def timed_in_turns(fns: dict, repeat: int) -> dict[str, tuple[np.ndarray, float]
             time.sleep(TURN_GAP_S)
             t0 = time.perf_counter()
             outs[name] = fn()
-            best[name] = min(best[name], time.perf_counter() - t0)
+            seconds = time.perf_counter() - t0
+            best[name] = min(best[name], seconds)
+            if each is not None:
+                each(name, outs[name], seconds)
     return {name: (outs[name], best[name]) for name in fns}
 
 

@@ -31,10 +31,9 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "benchmarks"))
 
-from accuracy import DEFAULT_DATA, load_scenes, run_opencv, timed_in_turns  # noqa: E402
+from accuracy import DEFAULT_DATA, load_scenes, presets_and_3way, timed_in_turns  # noqa: E402
 from stereocli.match.config import build_config  # noqa: E402
 from stereocli.match.kernels import set_threads as set_kernel_threads  # noqa: E402
-from stereocli.match.pipeline import match_pair  # noqa: E402
 from stereocli.process import keep_freed_memory, prepare_kernels  # noqa: E402
 
 keep_freed_memory()  # as the command line does
@@ -54,10 +53,7 @@ def enlarged(scene, factor: int):
 
 def best_times(scene, configs: dict, repeat: int) -> dict[str, float]:
     """``{preset or "3way": best seconds}``, the presets and OpenCV taking turns."""
-    runs = {name: (lambda cfg=cfg: match_pair(scene.left, scene.right, cfg, ndisp=scene.ndisp))
-            for name, cfg in configs.items()}
-    runs["3way"] = lambda: run_opencv("3way", scene)
-    return {name: seconds for name, (_, seconds) in timed_in_turns(runs, repeat).items()}
+    return {name: seconds for name, (_, seconds) in timed_in_turns(presets_and_3way(scene, configs), repeat).items()}
 
 
 def main(argv=None) -> int:

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-import time
 from collections import defaultdict
 from pathlib import Path
 
@@ -29,10 +28,9 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "benchmarks"))
 
-from accuracy import DEFAULT_DATA, TURN_GAP_S, load_scenes, run_opencv  # noqa: E402
+from accuracy import DEFAULT_DATA, load_scenes, presets_and_3way, timed_in_turns  # noqa: E402
 from stereocli.match.config import build_config  # noqa: E402
 from stereocli.match.kernels import set_threads as set_kernel_threads  # noqa: E402
-from stereocli.match.pipeline import match_pair  # noqa: E402
 from stereocli.process import keep_freed_memory, prepare_kernels  # noqa: E402
 
 keep_freed_memory()  # as the command line does: freed buffers stay in the process between pairs
@@ -48,23 +46,13 @@ def best_stage_times(scene, configs: dict, repeat: int) -> tuple[dict[str, dict[
     """``({preset: {stage: best seconds, ..., 'total': best seconds}}, SGBM 3WAY's best
     seconds)``, the presets and OpenCV taking turns."""
     best: dict[str, dict[str, float]] = {p: defaultdict(lambda: np.inf) for p in configs}
-    sgbm = np.inf
-    for p, cfg in configs.items():  # warm-up
-        match_pair(scene.left, scene.right, cfg, ndisp=scene.ndisp)
-    run_opencv("3way", scene)
-    for _ in range(repeat):
-        for p, cfg in configs.items():
-            time.sleep(TURN_GAP_S)
-            t0 = time.perf_counter()
-            result = match_pair(scene.left, scene.right, cfg, ndisp=scene.ndisp)
-            total = time.perf_counter() - t0
-            best[p]["total"] = min(best[p]["total"], total)
-            for key, seconds in result.timings.items():
-                best[p][stage_label(key)] = min(best[p][stage_label(key)], seconds)
-        time.sleep(TURN_GAP_S)
-        t0 = time.perf_counter()
-        run_opencv("3way", scene)
-        sgbm = min(sgbm, time.perf_counter() - t0)
+    def keep_stages(name, result, seconds) -> None:
+        if name in configs:
+            best[name]["total"] = min(best[name]["total"], seconds)
+            for key, stage_seconds in result.timings.items():
+                best[name][stage_label(key)] = min(best[name][stage_label(key)], stage_seconds)
+
+    sgbm = timed_in_turns(presets_and_3way(scene, configs), repeat, keep_stages)["3way"][1]
     return best, sgbm
 
 
