@@ -76,10 +76,14 @@ class StageTraits:
     """
 
     # -- every stage --------------------------------------------------------------------------
-    #: Reads the right view's colour channels. False: only its grey (``state.gray("right")``),
-    #: or not at all. When no stage of a config reads them, the pipeline turns the right view
-    #: grey before the first stage, so that preprocessing moves one channel instead of three.
-    reads_right_colour: bool = True
+    #: Reads the left view's colour channels: True, False (only its grey, ``state.gray("left")``,
+    #: or not at all) or ``f(params) -> bool`` (a ``color`` switch). When no stage of a config
+    #: reads them, the pipeline takes the left view's grey straight from the input (no float
+    #: copy of the colours).
+    reads_left_colour: bool | Predicate = True
+    #: The same for the right view. When no stage reads its colours, preprocessing (row_align)
+    #: also moves one channel instead of three.
+    reads_right_colour: bool | Predicate = True
 
     # -- refinement stages --------------------------------------------------------------------
     #: Reads the cost volume: runs inside each row strip, before the volume is dropped.

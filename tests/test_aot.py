@@ -35,7 +35,8 @@ def _pairs() -> list[tuple[np.ndarray, np.ndarray, dict]]:
             (small_left, small_right, {"ndisp": 64}),
             (grey_left, grey_right, {"ndisp": 112}),
             (left.astype(np.uint16) * 257, right.astype(np.uint16) * 257, {"ndisp": 112}),
-            (left, right, {"ndisp": 112, "left_valid": valid, "right_valid": valid})]
+            (left, right, {"ndisp": 112, "left_valid": valid, "right_valid": valid}),
+            (left, right, {"ndisp": 112, "keep_invalid": True})]  # match --keep-invalid: the median sees holes
 
 
 def _maps(monkeypatch, folder: Path | None) -> tuple[list[np.ndarray], dict]:

@@ -141,6 +141,27 @@ def test_median_ignores_holes_and_matches_reference():
     np.testing.assert_array_equal(st.disparity, _median_of_finite_reference(disp, 1))
 
 
+@pytest.mark.parametrize("threads", [1, 2])
+@pytest.mark.parametrize("size", [3, 5, 7])
+@pytest.mark.parametrize("shape", [(48, 57), (5, 40), (90, 7)])
+def test_median_matches_reference_dense_or_with_holes(size, shape, threads):
+    # Dense maps take OpenCV's median in two row bands (tall enough maps) plus the border
+    # kernel, maps with holes also the kernel near them, 7x7 the general kernel everywhere:
+    # every path gives the reference's values, whatever the thread count.
+    from stereocli.match.kernels import refine as kr, set_threads
+
+    rng = np.random.default_rng(size)
+    set_threads(threads)
+    try:
+        for holes in (0.0, 0.1):
+            disp = (rng.random(shape) * 60).astype(np.float32)
+            disp[rng.random(shape) < holes] = INF
+            np.testing.assert_array_equal(kr.median_valid(disp, size // 2),
+                                          _median_of_finite_reference(disp, size // 2))
+    finally:
+        set_threads(0)
+
+
 def test_bilateral_keeps_edges_and_holes():
     disp = np.array([[1, 1, 1, 9, 9, 9]] * 4, np.float32)
     disp[0, 0] = INF

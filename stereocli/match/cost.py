@@ -51,6 +51,11 @@ def left_guide(state: MatchState, color: bool) -> np.ndarray:
     return _channels(state.left if color else state.gray("left"))
 
 
+def colour_switch(params) -> bool:
+    """with ``color: true``"""
+    return bool(params.color)
+
+
 def check_odd_window(where: str, window: tuple[int, int], max_pixels: int | None = None) -> None:
     """Raise :class:`ConfigError` naming ``where`` unless both sizes are odd (and small enough)."""
     if window[0] % 2 == 0 or window[1] % 2 == 0:
@@ -386,7 +391,8 @@ def _census_windowed(state: MatchState, p: CensusParams, runs) -> tuple[np.ndarr
 
 # With ``state.wants.integer_cost`` the Hamming distances stay uint8 (1 byte per cell).
 @register("cost", "census", CensusParams,
-          traits=StageTraits(integer_cost_itemsize=1, windowed=_census_windowed, reads_right_colour=False))
+          traits=StageTraits(integer_cost_itemsize=1, windowed=_census_windowed, reads_left_colour=False,
+                             reads_right_colour=False))
 def census_cost(state: MatchState, p: CensusParams) -> None:
     """Hamming distance of census transforms (Zabih & Woodfill 1994) on the grey images.
 

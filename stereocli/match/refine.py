@@ -12,7 +12,7 @@ import numpy as np
 
 from ..errors import ConfigError
 from ..registry import StageTraits, param, register
-from .cost import left_guide
+from .cost import colour_switch, left_guide
 from .kernels import maps as km
 from .kernels import refine as kr
 from .kernels.winners import subpixel_left, subpixel_right
@@ -43,7 +43,8 @@ def _refines_right_view(state: MatchState, p: SubpixelParams) -> bool:
 
 @register("refinement", "subpixel", SubpixelParams,
           traits=StageTraits(needs_cost=True, on_winner_costs=_subpixel_on_winner_costs,
-                             needs_right_costs=_refines_right_view, reads_right_colour=False))
+                             needs_right_costs=_refines_right_view, reads_left_colour=False,
+                             reads_right_colour=False))
 def subpixel(state: MatchState, p: SubpixelParams) -> None:
     """Sub-pixel disparity from the costs around the winner (left view; right view too if kept).
 
@@ -72,7 +73,8 @@ def _compares_integer(p: LRCheckParams) -> bool:
 
 
 @register("refinement", "lr_check", LRCheckParams,
-          traits=StageTraits(needs_right=True, keeps_integer=_compares_integer, reads_right_colour=False))
+          traits=StageTraits(needs_right=True, keeps_integer=_compares_integer, reads_left_colour=False,
+                             reads_right_colour=False))
 def lr_check(state: MatchState, p: LRCheckParams) -> None:
     """Left-right consistency check: invalidate pixels the right view's disparity contradicts.
 
@@ -100,7 +102,7 @@ class MedianParams:
     size: int = param(3, "window side (odd)", unit="px", low=3, high=15)
 
 
-@register("refinement", "median", MedianParams, traits=StageTraits(reads_right_colour=False))
+@register("refinement", "median", MedianParams, traits=StageTraits(reads_left_colour=False, reads_right_colour=False))
 def median(state: MatchState, p: MedianParams) -> None:
     """Median filter over valid disparities only (holes neither spread nor get filled)."""
     if p.size % 2 == 0:
@@ -108,7 +110,8 @@ def median(state: MatchState, p: MedianParams) -> None:
     state.disparity = kr.median_valid(state.disparity, p.size // 2)
 
 
-@register("refinement", "fill", traits=StageTraits(fills_holes=True, reads_right_colour=False))
+@register("refinement", "fill",
+          traits=StageTraits(fills_holes=True, reads_left_colour=False, reads_right_colour=False))
 def fill(state: MatchState, params) -> None:
     """Fill invalid pixels along scanlines with the background (smaller) neighbouring disparity.
 
@@ -167,7 +170,8 @@ def _confidence_wanted(state: MatchState, params) -> bool:
 
 @register("refinement", "confidence", ConfidenceParams,
           traits=StageTraits(needs_cost=True, on_winner_costs=_confidence_on_winner_costs,
-                             needs_second_best=_confidence_wanted, reads_right_colour=False))
+                             needs_second_best=_confidence_wanted, reads_left_colour=False,
+                             reads_right_colour=False))
 def confidence(state: MatchState, p: ConfidenceParams) -> None:
     """Per-pixel confidence in [0, 1] (``match --confidence``): cost uniqueness × LR agreement.
 
@@ -258,7 +262,8 @@ class PlaneSmoothParams:
     step: int = param(1, "fit through every step-th neighbour of the segment (2: half the work)", low=1, high=10)
 
 
-@register("refinement", "plane_smooth", PlaneSmoothParams, traits=StageTraits(reads_right_colour=False))
+@register("refinement", "plane_smooth", PlaneSmoothParams,
+          traits=StageTraits(reads_left_colour=colour_switch, reads_right_colour=False))
 def plane_smooth(state: MatchState, p: PlaneSmoothParams) -> None:
     """Edge-aware sub-pixel smoothing by local line fits along rows, then columns.
 

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from .cost import _channels
+from .cost import _channels, colour_switch
 from .kernels import maps as km
 from .kernels import segment as ks
 from ..errors import ConfigError
@@ -106,7 +106,8 @@ class GeodesicVoteParams:
     color: bool = param(True, "colour differences on the colour image; false: on the grey image")
 
 
-@register("refinement", "geodesic_vote", GeodesicVoteParams, traits=StageTraits(reads_right_colour=False))
+@register("refinement", "geodesic_vote", GeodesicVoteParams,
+          traits=StageTraits(reads_left_colour=colour_switch, reads_right_colour=False))
 def geodesic_vote(state: MatchState, p: GeodesicVoteParams) -> None:
     """Put depth edges back on colour edges: pixels beside a disparity step take the disparity
     their colour-connected neighbours along the row, then the column, support most.

@@ -17,7 +17,8 @@ def _luma_rows(img, out, y0: int, y1: int) -> None:
 
 
 def luma(img: np.ndarray) -> np.ndarray:
-    """(H, W, 3) float32 RGB -> (H, W) float32 luma 0.299 R + 0.587 G + 0.114 B."""
+    """(H, W, 3) float32 or uint8 RGB -> (H, W) float32 luma 0.299 R + 0.587 G + 0.114 B (the
+    same values for 8-bit colours as for their float32 copy)."""
     h, w = img.shape[0], img.shape[1]
     out = np.empty((h, w), np.float32)
     for_rows(_luma_rows, h, img, out)

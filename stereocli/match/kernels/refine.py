@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import chunk_kernel, for_chunks, for_rows, njit
+from . import chunk_kernel, for_chunks, for_rows, njit, side_by_side
 from .aggregation import channel_planes
 
 INF = np.float32(np.inf)
@@ -305,28 +305,52 @@ def interpolate_holes(disp: np.ndarray, label: np.ndarray, max_dist: int) -> np.
     return out
 
 
+@njit(cache=True, inline="always")
+def _median_of_finite_window(disp, y: int, x: int, radius: int, buf):
+    # Median of the finite values of the (2r+1)² window at (y, x) clipped to the image
+    # (insertion sort into buf); the mean of the two middle values for an even count.
+    h, w = disp.shape
+    n = 0
+    for yy in range(max(0, y - radius), min(h, y + radius + 1)):
+        for xx in range(max(0, x - radius), min(w, x + radius + 1)):
+            v = disp[yy, xx]
+            if np.isfinite(v):
+                n = _insert_sorted(buf, n, v)
+    return _sorted_median(buf, n)
+
+
 @chunk_kernel
 def _median_valid_where_rows(disp, radius: int, todo, out, y0: int, y1: int) -> None:
     """:func:`_median_valid_where` on rows ``y0`` to ``y1`` (exclusive)."""
-    h, w = disp.shape
+    w = disp.shape[1]
     buf = np.empty((2 * radius + 1) ** 2, np.float32)
     for y in range(y0, y1):
         for x in range(w):
-            if not todo[y, x] or not np.isfinite(disp[y, x]):
-                continue
-            n = 0
-            for yy in range(max(0, y - radius), min(h, y + radius + 1)):
-                for xx in range(max(0, x - radius), min(w, x + radius + 1)):
-                    v = disp[yy, xx]
-                    if np.isfinite(v):
-                        n = _insert_sorted(buf, n, v)
-            out[y, x] = _sorted_median(buf, n)
+            if todo[y, x] and np.isfinite(disp[y, x]):
+                out[y, x] = _median_of_finite_window(disp, y, x, radius, buf)
+
+
+@chunk_kernel
+def _median_valid_frame_rows(disp, radius: int, out, y0: int, y1: int) -> None:
+    """The general median at the finite pixels within ``radius`` of the image border, rows
+    ``y0`` to ``y1`` (exclusive): whole rows at the top and bottom, ``radius`` columns at
+    each side of the others."""
+    h, w = disp.shape
+    buf = np.empty((2 * radius + 1) ** 2, np.float32)
+    for y in range(y0, y1):
+        whole_row = y < radius or y >= h - radius
+        right = 0 if whole_row else max(radius, w - radius)  # the right border's first column
+        for x in range(w if whole_row else min(radius, w)):
+            if np.isfinite(disp[y, x]):
+                out[y, x] = _median_of_finite_window(disp, y, x, radius, buf)
+        for x in range(right, w if right > 0 else 0):
+            if np.isfinite(disp[y, x]):
+                out[y, x] = _median_of_finite_window(disp, y, x, radius, buf)
 
 
 def _median_valid_where(disp: np.ndarray, radius: int, todo: np.ndarray, out: np.ndarray) -> None:
     # General case at the pixels flagged in ``todo``: median of the finite values of the
-    # window clipped to the image (insertion sort in a fixed buffer); the mean of the two
-    # middle values for an even count; invalid centres stay invalid.
+    # window clipped to the image; invalid centres stay invalid.
     for_rows(_median_valid_where_rows, disp.shape[0], disp, radius, todo, out)
 
 
@@ -335,8 +359,9 @@ def median_valid(disp: np.ndarray, radius: int) -> np.ndarray:
     centres stay invalid (reference: ``tests/test_refine_sgm.py``). Returns a new map.
 
     Windows that are whole and all finite (most of them) take OpenCV's vectorised
-    ``medianBlur`` (float32 supports 3×3 and 5×5); the rest — near holes and borders — the
-    general kernel. Same values either way.
+    ``medianBlur`` (float32 supports 3×3 and 5×5; two row bands side by side, as it runs on
+    one thread); the rest — near holes and the border — the general kernels. Same values
+    either way.
     """
     disp = np.ascontiguousarray(disp, dtype=np.float32)
     h, w = disp.shape
@@ -345,16 +370,31 @@ def median_valid(disp: np.ndarray, radius: int) -> np.ndarray:
         out = disp.copy()
         _median_valid_where(disp, radius, np.ones((h, w), np.bool_), out)
         return out
+    out = _median_blur(disp, size)
+    invalid = ~np.isfinite(disp)
+    if invalid.any():
+        import cv2
+
+        out[invalid] = np.inf
+        todo = cv2.dilate(invalid.view(np.uint8), np.ones((size, size), np.uint8)).view(np.bool_)
+        _median_valid_where(disp, radius, todo, out)
+    for_rows(_median_valid_frame_rows, h, disp, radius, out)
+    return out
+
+
+def _median_blur(disp: np.ndarray, size: int) -> np.ndarray:
+    """``cv2.medianBlur(disp, size)``, the top and bottom halves side by side (each with the
+    rows of context its windows read; the same values)."""
     import cv2
 
-    out = cv2.medianBlur(disp, size)
-    invalid = (~np.isfinite(disp)).astype(np.uint8)
-    todo = cv2.dilate(invalid, np.ones((size, size), np.uint8)).astype(np.bool_)
-    todo[:radius] = todo[h - radius:] = True
-    todo[:, :radius] = todo[:, w - radius:] = True
-    out[invalid.astype(np.bool_)] = np.inf
-    _median_valid_where(disp, radius, todo, out)
-    return out
+    h = disp.shape[0]
+    radius = size // 2
+    middle = h // 2
+    if h < 8 * size:
+        return cv2.medianBlur(disp, size)
+    top, bottom = side_by_side(lambda: cv2.medianBlur(disp[:middle + radius], size),
+                               lambda: cv2.medianBlur(disp[middle - radius:], size))
+    return np.concatenate([top[:middle], bottom[radius:]])
 
 
 @chunk_kernel

@@ -254,7 +254,8 @@ def _searches_coarse_to_fine(p: SGMParams) -> bool:
 @register("optimizer", "sgm", SGMParams,
           traits=StageTraits(volume_copies=0.25, accepts_integer_cost=True, integer_volume_copies=0.5,
                              buffer_bytes=_buffer_bytes, runs_cost=_searches_coarse_to_fine,
-                             small_twin=_small_twin, reads_right_colour=False))
+                             small_twin=_small_twin, reads_left_colour=False,
+                             reads_right_colour=False))
 def sgm(state: MatchState, p: SGMParams, cost=None) -> None:
     """Semi-global matching: sum of 1-D smoothness-constrained path costs (Hirschmüller 2008).
 
