@@ -33,10 +33,11 @@ def test_a_run_imports_only_the_stage_modules_its_config_names():
     code = ("import sys, json\nfrom stereocli.match.config import build_config\nbuild_config()\n"
             "print(json.dumps(sorted(m for m in sys.modules if m.startswith('stereocli.match'))))")
     loaded = set(json.loads(_python(code).stdout))
-    assert {"stereocli.match.cost", "stereocli.match.optimize.sgm", "stereocli.match.refine",
-            "stereocli.match.refine_segment"} <= loaded
+    assert {"stereocli.match.preprocess", "stereocli.match.cost", "stereocli.match.optimize.sgm",
+            "stereocli.match.refine"} <= loaded
     unused = {"stereocli.match.aggregate", "stereocli.match.cost_mi", "stereocli.match.optimize.bp",
-              "stereocli.match.optimize.gc", "stereocli.match.refine_voting", "stereocli.match.refine_local"}
+              "stereocli.match.optimize.gc", "stereocli.match.refine_voting", "stereocli.match.refine_local",
+              "stereocli.match.refine_segment"}
     assert not loaded & unused
 
 

@@ -183,13 +183,15 @@ class RowAlignParams:
     max_spread: float = param(0.5, "the tracks' robust standard deviation about the plane above which the pair is left as it is (its rows are off in a way a plane does not describe: rectify it)", unit="px", low=0.0, high=50.0)
     min_offset: float = param(0.1, "smallest correction: a pair whose fitted offset stays below this everywhere is left as it is (the fit's own error on aligned pairs reaches 0.06 px, and resampling blurs a little)", unit="px", low=0.0, high=50.0)
     reduce: int = param(2, "track on the images reduced by this factor (1: full resolution, about three times the time, same MiddEval3 scores)", choices=(1, 2, 4))
+    min_pixels: int = param(0, "fewest pixels of the reduced images: smaller pairs track at half the factor, or at full resolution (a small image reduced 4x leaves too few corners)", low=0, high=10**9)
     measure: bool = param(True, "track corners and fit the plane; false: apply offset, tilt_x and tilt_y as given (a rig's known rows, e.g. from an earlier pair's params.json), without tracking")
     offset: float = param(0.0, "with measure: false, how far below its left-view row a point appears in the right view at the image centre", unit="px", low=-50.0, high=50.0)
     tilt_x: float = param(0.0, "with measure: false, the change of that offset across the image width", unit="px", low=-50.0, high=50.0)
     tilt_y: float = param(0.0, "with measure: false, the change of that offset across the image height", unit="px", low=-50.0, high=50.0)
 
 
-@register("preprocess", "row_align", RowAlignParams, traits=StageTraits(reads_right_colour=False))
+@register("preprocess", "row_align", RowAlignParams,
+          traits=StageTraits(reads_left_colour=False, reads_right_colour=False))
 def row_align(state: MatchState, p: RowAlignParams) -> None:
     """Resample the right view onto the left view's rows: corrects a residual vertical offset.
 
@@ -219,13 +221,16 @@ def row_align(state: MatchState, p: RowAlignParams) -> None:
         state.notes["row_align"] = {**plane.as_dict(), "applied": plane.largest > 0, "given": True}
         return
     lo, hi = state.min_disp - 1.0, state.min_disp + state.ndisp
+    scale = p.reduce
+    while scale > 1 and (h // scale) * (w // scale) < p.min_pixels:
+        scale //= 2
     left_xy, right_xy = track_rows(state.gray("left"), state.gray("right"), disparity_range=(lo, hi),
                                    left_valid=state.left_valid, points=p.points, window=p.window, sigma=p.sigma,
-                                   max_offset=p.max_offset, scale=p.reduce)
+                                   max_offset=p.max_offset, scale=scale)
     plane = fit_vertical_offset(left_xy, right_xy, w, h, model=p.model, min_tracks=p.min_tracks)
     # ``measured``: the plane is a measurement of the rows (enough tracks, close to it), whether
     # or not it was applied; the match job then takes the pair's row alignment from it.
-    note: dict = {"tracks_found": int(len(left_xy))}
+    note: dict = {"tracks_found": int(len(left_xy)), "reduced": scale}
     if plane is None:
         note.update(applied=False, measured=False, reason=f"fewer than {p.min_tracks} tracks")
     elif plane.spread > p.max_spread:
