@@ -17,7 +17,7 @@ separate processes and share the disk cache:
   coarse level;
 * ``maps_1`` and ``maps_2``: the map refinements (LR check, fill, median, votes, smoothing) on
   a synthetic disparity map, without running the volume stages; ``maps_1`` runs the first,
-  third, fifth, ... of them, ``maps_2`` the others (so the default's two slowest to compile,
+  third, fifth, ... of them, ``maps_2`` the others (so ``accurate``'s two slowest to compile,
   the geodesic vote and ``plane_smooth``, fall into different tasks);
 * ``volume_small``: the volume stages of a 128×96 pair with 16 disparities: the full-range
   search of small problems, whose kernels are also the coarse level's.
@@ -41,7 +41,7 @@ import numpy as np
 
 from .config import PipelineConfig, validate
 
-#: Tasks, each with its share of the compile time (seconds of the default preset on one core;
+#: Tasks, each with its share of the compile time (seconds of ``accurate``'s kernels on one core;
 #: for spreading them over processes).
 TASKS = {"volume_large": 9.5, "maps_2": 6.0, "volume_small": 5.6, "maps_1": 2.4}
 #: The folder that holds this ``stereocli`` package, the warm-up processes' working directory:
