@@ -283,3 +283,20 @@ def test_views_go_grey_when_no_stage_reads_their_colour(monkeypatch, tmp_path):
     coloured = match_pair(scene["left"], scene["right"], default, ndisp=48).disparity
     assert np.mean(np.abs(grey - coloured) <= 0.01) > 0.995
     assert abs(_bad(grey, scene) - _bad(coloured, scene)) < 0.2
+
+
+def test_small_pairs_track_at_half_the_reduction():
+    # 320x240 reduced 4x leaves 4800 pixels, under the default's min_pixels (5000): it tracks at
+    # 2x (measured: about 300 tracks, offset 0.47 for the rendered 0.4); forced to 4x, the
+    # curved scene keeps 29 tracks, too few for a fit.
+    scene = render(scene_surfaces("curved", W, H, seed=0), W, H, right_row_offset=0.4)
+    note = match_pair(scene["left"], scene["right"], build_config(["default"]), ndisp=48).notes["row_align"]
+    assert note["reduced"] == 2 and note["applied"] is True and note["tracks"] > 200
+    assert abs(note["offset_px"] - 0.4) < 0.1
+    forced = build_config(["default"], ["preprocess.row_align.min_pixels=0"])
+    note = match_pair(scene["left"], scene["right"], forced, ndisp=48).notes["row_align"]
+    assert note["reduced"] == 4 and note["tracks_found"] < 100
+    # A pair twice the size keeps the 4x reduction.
+    large = render(scene_surfaces("curved", 2 * W, 2 * H, seed=0), 2 * W, 2 * H, right_row_offset=0.4)
+    note = match_pair(large["left"], large["right"], build_config(["default"]), ndisp=96).notes["row_align"]
+    assert note["reduced"] == 4 and note["applied"] is True and abs(note["offset_px"] - 0.4) < 0.1

@@ -339,11 +339,12 @@ def _median_valid_frame_rows(disp, radius: int, out, y0: int, y1: int) -> None:
     buf = np.empty((2 * radius + 1) ** 2, np.float32)
     for y in range(y0, y1):
         whole_row = y < radius or y >= h - radius
-        right = 0 if whole_row else max(radius, w - radius)  # the right border's first column
-        for x in range(w if whole_row else min(radius, w)):
+        left_end = w if whole_row else min(radius, w)  # columns [0, left_end) ...
+        right_start = w if whole_row else max(radius, w - radius)  # ... and [right_start, w)
+        for x in range(left_end):
             if np.isfinite(disp[y, x]):
                 out[y, x] = _median_of_finite_window(disp, y, x, radius, buf)
-        for x in range(right, w if right > 0 else 0):
+        for x in range(right_start, w):
             if np.isfinite(disp[y, x]):
                 out[y, x] = _median_of_finite_window(disp, y, x, radius, buf)
 
