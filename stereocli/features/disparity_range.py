@@ -73,7 +73,7 @@ def _coarse_config(speckle: int):
         "optimizer": {"name": "sgm", "paths": 4},
         "refinement": [{"name": "uniqueness", "ratio": 0.1}, {"name": "lr_check", "max_diff": 1},
                        {"name": "speckle", "max_size": speckle, "max_diff": 1}],
-        "runtime": {"threads": 1},  # a small image: one thread beats the threads' start-up
+        "runtime": {"threads": 0},
     }, "disparity range estimate")
 
 
