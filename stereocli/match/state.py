@@ -86,8 +86,8 @@ class Wants:
 class MatchState:
     """Images, disparity range and the products of the stages run so far."""
 
-    left: np.ndarray  # (H, W) or (H, W, 3) float32 in [0, 255]
-    right: np.ndarray  # same shape as left, or its (H, W) grey when no stage reads its colour
+    left: np.ndarray  # (H, W) or (H, W, 3) float32 in [0, 255]; (H, W) grey when no stage reads its colour
+    right: np.ndarray  # likewise (a colour pair can have one view grey and the other not)
     min_disp: int  # smallest disparity searched, px (may be negative)
     ndisp: int  # number of disparities searched: [min_disp, min_disp + ndisp)
     left_valid: np.ndarray | None = None  # (H, W) bool, False on rectification borders
