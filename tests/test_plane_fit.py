@@ -458,10 +458,11 @@ def test_separable_local_consistency_is_deterministic_across_thread_counts():
     assert not np.array_equal(results[0][0], disp)
 
 
-def geodesic_reference(disp, image, min_disp, ndisp, gamma_s, gamma_c, band, min_change):
-    """The geodesic vote by its definition, pixel by pixel: rows, then columns of the result.
-    Exact sums over the whole line (the kernel keeps the 3 strongest bins of each running
-    vote; with at most 3 bins on a line that is the same)."""
+def geodesic_reference(disp, image, min_disp, ndisp, gamma_s, gamma_c, band, min_change, min_lead=1.0,
+                       lines="both"):
+    """The geodesic vote by its definition, pixel by pixel: rows, then columns of the result
+    (or one of the two passes). Exact sums over the whole line (the kernel keeps the 3
+    strongest bins of each running vote; with at most 3 bins on a line that is the same)."""
     c = image.shape[2]
 
     def bin_of(d):
@@ -491,15 +492,19 @@ def geodesic_reference(disp, image, min_disp, ndisp, gamma_s, gamma_c, band, min
                     mass[b] = mass.get(b, 0.0) + wgt
                     total[b] = total.get(b, 0.0) + wgt * float(src[idx[g]])
                 best = min(mass, key=lambda b: (-mass[b], b))
-                if abs(best - own) >= min_change:
+                if abs(best - own) >= min_change and mass[best] >= min_lead * mass[own]:
                     out[idx[f]] = total[best] / mass[best]
         return out
 
-    return one_pass(one_pass(disp, False), True)
+    out = disp
+    for vertical in {"both": (False, True), "rows": (False,), "columns": (True,)}[lines]:
+        out = one_pass(out, vertical)
+    return out
 
 
-@pytest.mark.parametrize("seed", [0, 1])
-def test_geodesic_vote_matches_reference(seed):
+@pytest.mark.parametrize("seed, min_lead, lines", [(0, 1.0, "both"), (1, 1.0, "both"), (0, 1.5, "rows"),
+                                                    (1, 1.5, "columns"), (3, 1.5, "both")])
+def test_geodesic_vote_matches_reference(seed, min_lead, lines):
     from stereocli.match.refine_segment import GeodesicVoteParams, geodesic_vote
 
     rng = np.random.default_rng(seed)
@@ -509,22 +514,29 @@ def test_geodesic_vote_matches_reference(seed):
     level = rng.integers(0, 3, (h, w))
     disp = (2.0 + 4.0 * level + rng.uniform(-0.4, 0.4, (h, w))).astype(np.float32)
     disp[rng.random((h, w)) < 0.08] = np.inf
-    p = GeodesicVoteParams(gamma_s=6.0, gamma_c=150.0, band=2, min_change=2, max_bins=3)
+    p = GeodesicVoteParams(gamma_s=6.0, gamma_c=150.0, band=2, min_change=2, max_bins=3, min_lead=min_lead,
+                           lines=lines)
     state = MatchState(image, image, 0, 16)
     state.disparity = disp.copy()
     geodesic_vote(state, p)
-    want = geodesic_reference(disp, image, 0, 16, 6.0, 150.0, 2, 2)
+    want = geodesic_reference(disp, image, 0, 16, 6.0, 150.0, 2, 2, min_lead, lines)
     np.testing.assert_array_equal(np.isfinite(state.disparity), np.isfinite(disp))  # holes neither vote nor move
     fin = np.isfinite(want)
     np.testing.assert_allclose(state.disparity[fin], want[fin], rtol=0, atol=1e-4)
     assert not np.array_equal(state.disparity[fin], disp[fin])  # some pixels did move
+    if min_lead > 1:  # ... and the lead kept some that a plain majority would have moved
+        plain = geodesic_reference(disp, image, 0, 16, 6.0, 150.0, 2, 2, 1.0, lines)
+        assert not np.array_equal(plain[fin], want[fin])
 
 
-def test_geodesic_vote_moves_fattened_edges_and_keeps_slants():
+@pytest.mark.parametrize("min_lead", [1.0, 2.5])
+def test_geodesic_vote_moves_fattened_edges_and_keeps_slants(min_lead):
     # A foreground square (disparity 12) fattened by 3 px to the right and 2 px downwards onto
     # a slanted background (3.0..5.4 px): every fattened pixel goes back to the background
     # (the mean of the background bin most of its colour-connected row or column holds: within
-    # 1.5 px on this slant, from 7.6–9 px off); the square and the rest stay exactly.
+    # 1.5 px on this slant, from 7.6–9 px off); the square and the rest stay exactly. The
+    # fattened pixels' own bin reaches them only across the colour edge, so a required lead
+    # of 2.5 moves them too.
     from stereocli.match.refine_segment import GeodesicVoteParams, geodesic_vote
 
     h, w = 40, 60
@@ -537,7 +549,7 @@ def test_geodesic_vote_moves_fattened_edges_and_keeps_slants():
     fattened[10:27, 20:38] = 12.0
     state = MatchState(image, image, 0, 16)
     state.disparity = fattened.copy()
-    geodesic_vote(state, GeodesicVoteParams(band=4))
+    geodesic_vote(state, GeodesicVoteParams(band=4, min_lead=min_lead))
     np.testing.assert_array_equal(state.disparity[10:25, 20:35], 12.0)
     moved = (fattened == 12.0) & (truth != 12.0)
     assert np.abs(state.disparity[moved] - truth[moved]).max() < 1.5

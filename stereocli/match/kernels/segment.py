@@ -816,7 +816,7 @@ _COLUMN_BLOCK = 16
 
 @chunk_kernel
 def _vote_chunk(disp, bins, packed, centre, passed, min_change: int, max_bins: int, n_bins: int,
-                vertical: bool, out, n_chunks: int, chunk: int) -> None:
+                vertical: bool, min_lead: float, out, n_chunks: int, chunk: int) -> None:
     """:func:`geodesic_vote_line` on the lines of ``chunk`` (of ``n_chunks``), written into ``out``."""
     h, w = bins.shape
     n_lines = w if vertical else h
@@ -906,6 +906,7 @@ def _vote_chunk(disp, bins, packed, centre, passed, min_change: int, max_bins: i
                     # votes (each holds a bin once; the backward one is found through entry).
                     best, best_m, best_s = -1, -1.0, 0.0
                     own_seen = False
+                    own_m = 1.0  # the own bin's mass, set below in either case
                     f_n = fn[ci]
                     for i in range(f_n):
                         b = fk[ci, i]
@@ -914,15 +915,18 @@ def _vote_chunk(disp, bins, packed, centre, passed, min_change: int, max_bins: i
                             m, s = 1.0 + m, d + s
                             own_seen = True
                         m, s = _plus_kept(mm, ss, entry, scale, b, m, s)
+                        if b == k:
+                            own_m = m
                         best, best_m, best_s = _heavier(best, best_m, best_s, b, m, s)
                     if not own_seen:
                         m, s = _plus_kept(mm, ss, entry, scale, k, 1.0, np.float64(d))
+                        own_m = m
                         best, best_m, best_s = _heavier(best, best_m, best_s, k, m, s)
                     for i in range(n):  # backward bins neither own nor forward
                         b = kk[i]
                         if b != k and not _holds(fk[ci], f_n, b):
                             best, best_m, best_s = _heavier(best, best_m, best_s, b, mm[i] * scale, ss[i] * scale)
-                    if abs(best - k) >= min_change:
+                    if abs(best - k) >= min_change and best_m >= min_lead * own_m:
                         v = np.float32(best_s / best_m)
                         if vertical:
                             out[p, line] = v
@@ -934,7 +938,7 @@ def _vote_chunk(disp, bins, packed, centre, passed, min_change: int, max_bins: i
 
 
 def geodesic_vote_line(disp, bins, packed, centre, passed, min_change: int, max_bins: int, n_bins: int,
-                       vertical: bool):
+                       vertical: bool, min_lead: float = 1.0):
     """One pass of the geodesic vote along the rows (or, ``vertical``, the columns).
 
     Every valid pixel g of a line votes for its 1-px bin with the product of the weights
@@ -946,13 +950,14 @@ def geodesic_vote_line(disp, bins, packed, centre, passed, min_change: int, max_
     votes per disparity bin). One pass from each end gives every pixel both halves of the sum
     in O(1) per pixel and bin kept: each running vote keeps the ``max_bins`` bins of most mass
     (a new bin replaces the weakest). Pixels with ``centre`` (H, W) bool take the weighted
-    mean disparity of the winning bin when it is at least ``min_change`` bins from their own;
-    the others keep their value. ``disp`` (H, W) float32 +inf invalid; ``bins`` from
+    mean disparity of the winning bin when it is at least ``min_change`` bins from their own
+    and its mass at least ``min_lead`` times their own bin's; the others keep their value.
+    ``disp`` (H, W) float32 +inf invalid; ``bins`` from
     :func:`~stereocli.match.kernels.maps.disparity_bins`, all below ``n_bins``. Returns the new map.
     """
     out = disp.copy()
     n_lines = bins.shape[1] if vertical else bins.shape[0]
     n_chunks = min(n_lines, 8)  # few chunks: each allocates its line buffers
     for_chunks(_vote_chunk, n_chunks, disp, bins, packed, centre, passed, min_change, max_bins, n_bins, vertical,
-               out, n_chunks)
+               float(min_lead), out, n_chunks)
     return out
