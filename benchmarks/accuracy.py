@@ -204,12 +204,17 @@ def presets_and_3way(scene: Scene, configs: dict) -> dict:
 
 def timed_in_turns(fns: dict, repeat: int, each=None) -> dict[str, tuple[np.ndarray, float]]:
     """Each function warmed up once, then all of them in turns for ``repeat`` rounds; returns
-    ``{name: (last output, best seconds)}``. ``each(name, output, seconds)``, if given, sees
-    every timed call (e.g. to keep the best of a result's own timings)."""
+    ``{name: (last output, best seconds)}``. Each round starts one function later than the
+    previous one, so no function always runs right after the same other one (whose worker
+    threads may still be spinning). ``each(name, output, seconds)``, if given, sees every
+    timed call (e.g. to keep the best of a result's own timings)."""
     outs = {name: fn() for name, fn in fns.items()}
     best = dict.fromkeys(fns, np.inf)
-    for _ in range(repeat):
-        for name, fn in fns.items():
+    names = list(fns)
+    for round_ in range(repeat):
+        start = round_ % len(names)
+        for name in names[start:] + names[:start]:
+            fn = fns[name]
             time.sleep(TURN_GAP_S)
             t0 = time.perf_counter()
             outs[name] = fn()
