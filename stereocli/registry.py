@@ -105,6 +105,10 @@ class StageTraits:
     #: on the mirrored pair (both images flipped left-right and swapped), flipped back, so it is
     #: referenced to the right image. The pipeline runs it just before the stage.
     needs_mirrored: bool = False
+    #: ``f(params, note) -> params``: a preprocess stage's params for that mirrored run, from
+    #: the note the stage left on the pair (``state.notes``; None if it left none): they repeat
+    #: its effect on the mirrored pair instead of measuring it again.
+    mirrored_params: Callable | None = None
 
     # -- cost stages ----------------------------------------------------------------------
     #: ``f(state, params, winner: bool)``: cost + WTA in one pass, never storing the volume

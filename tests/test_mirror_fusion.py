@@ -12,6 +12,7 @@ from stereocli.match.config import build_config
 from stereocli.match.pipeline import match_pair
 from stereocli.match.refine_fusion import fuse_with_mirrored, sample_right_map
 from stereocli.synth.scenes import render, scene_surfaces
+from test_kernels_sgm import on_one_and_two_threads
 
 INF = np.float32(np.inf)
 
@@ -97,3 +98,40 @@ def test_the_pipeline_fuses_with_the_stages_before_it_run_on_the_mirrored_pair(t
 def test_a_negative_tolerance_is_a_config_error(tmp_path):
     with pytest.raises(ConfigError, match="tolerance"):
         _config(tmp_path, "{name: mirror_fusion, tolerance: -1.0}")
+
+
+def fuse_reference(disparity, right_map, tolerance):
+    """The fusion by its definition, with numpy: the mean where the sampled right map agrees."""
+    sampled = sample_right_map(disparity, right_map)
+    agree = np.isfinite(sampled)
+    agree[agree] = np.abs(sampled[agree] - disparity[agree]) < tolerance
+    return np.where(agree, np.float32(0.5) * (disparity + sampled), disparity).astype(np.float32)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_compiled_fusion_equals_its_definition(seed):
+    # Random maps with holes, disparities landing on whole columns (weight 0), on the last
+    # column and outside the image, on one and two threads.
+    rng = np.random.default_rng(seed)
+    h, w = 23, 31
+    disparity = rng.uniform(-2, 12, (h, w)).astype(np.float32)
+    whole = rng.random((h, w)) < 0.2
+    disparity[whole] = np.round(disparity[whole])
+    disparity[:, -1] = 0.0  # lands on column W - 1 exactly
+    disparity[rng.random((h, w)) < 0.1] = INF
+    right_map = (disparity + rng.uniform(-1.5, 1.5, (h, w))).astype(np.float32)
+    right_map[rng.random((h, w)) < 0.15] = INF
+    want = fuse_reference(disparity, right_map, 1.0)
+
+    def run():
+        return fuse_with_mirrored(disparity, right_map, 1.0)
+
+    for got in on_one_and_two_threads(run):
+        np.testing.assert_array_equal(got, want)
+    assert (want != disparity).sum() > 50  # many pixels were averaged
+
+
+def test_the_compiled_fusion_on_a_one_column_map():
+    disparity = np.array([[0.0], [0.5], [INF]], np.float32)
+    right_map = np.array([[1.0], [0.0], [0.0]], np.float32)
+    np.testing.assert_array_equal(fuse_with_mirrored(disparity, right_map, 2.0), fuse_reference(disparity, right_map, 2.0))

@@ -300,3 +300,37 @@ def test_small_pairs_track_at_half_the_reduction():
     large = render(scene_surfaces("curved", 2 * W, 2 * H, seed=0), 2 * W, 2 * H, right_row_offset=0.4)
     note = match_pair(large["left"], large["right"], build_config(["default"]), ndisp=96).notes["row_align"]
     assert note["reduced"] == 4 and note["applied"] is True and abs(note["offset_px"] - 0.4) < 0.1
+
+
+def test_the_mirrored_pair_is_given_the_pairs_plane(monkeypatch):
+    # A pair whose right view sits 0.6 px low, turning across and down the image: mirror_fusion's
+    # mirrored run (flipped right view as the left) applies the pair's plane, negated down the
+    # image and in offset, instead of tracking again. The plane row_align measures on the
+    # mirrored pair itself agrees with it.
+    import stereocli.features.vertical_offset as vertical_offset
+    from stereocli.match import preprocess
+    from stereocli.match.pipeline import prepare
+
+    plane = VerticalOffset(0.6, 0.8, -0.6, W, H, 0, 0.0)
+    scene = render(scene_surfaces("planes", W, H, seed=0), W, H)
+    right = np.clip(resample_rows(scene["right"].astype(np.float32), plane.reversed()), 0, 255).astype(np.uint8)
+    config = build_config(["quality"])
+    note = prepare(scene["left"], right, config, ndisp=48).state.notes["row_align"]
+    assert note["applied"] is True
+    assert abs(note["offset_px"] - 0.6) < 0.1 and abs(note["tilt_x_px"] - 0.8) < 0.15
+    assert abs(note["tilt_y_px"] + 0.6) < 0.15
+    given = preprocess._mirrored_row_align(config.preprocess[0].params, note)
+    assert given.measure is False
+    mirrored = prepare(np.ascontiguousarray(right[:, ::-1]), np.ascontiguousarray(scene["left"][:, ::-1]), config,
+                       ndisp=48).state.notes["row_align"]
+    assert abs(given.offset - mirrored["offset_px"]) < 0.1
+    assert abs(given.tilt_x - mirrored["tilt_x_px"]) < 0.15 and abs(given.tilt_y - mirrored["tilt_y_px"]) < 0.15
+    # The quality preset tracks the pair once: its mirrored run is given the plane.
+    calls = []
+    original = vertical_offset.track_rows  # row_align imports it when it runs
+    monkeypatch.setattr(vertical_offset, "track_rows", lambda *a, **k: calls.append(1) or original(*a, **k))
+    result = match_pair(scene["left"], right, config, ndisp=48)
+    assert len(calls) == 1 and result.notes["row_align"]["applied"] is True
+    # A pair row_align leaves as it is stays as it is mirrored.
+    unchanged = preprocess._mirrored_row_align(config.preprocess[0].params, {"applied": False})
+    assert unchanged.measure is False and (unchanged.offset, unchanged.tilt_x, unchanged.tilt_y) == (0, 0, 0)

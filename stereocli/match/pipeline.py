@@ -392,13 +392,19 @@ def mirrored_disparity(prepared: PreparedPair, config: PipelineConfig, call) -> 
     (H, W) float32 px, +inf invalid: at right-image column ``x`` the disparity ``d`` of the point
     seen at ``x + d`` in the left image. Mirroring keeps the disparity range, and the mirrored
     run sees each occlusion and each census window from the other side, so its errors are
-    largely independent of the left map's."""
+    largely independent of the left map's. A preprocess stage with ``mirrored_params``
+    (``row_align``) applies what it found on the pair instead of measuring the mirrored one."""
     left, right, left_valid, right_valid = prepared.inputs
     flip = lambda m: None if m is None else m[:, ::-1]  # noqa: E731
     before = config.refinement[:next(i for i, c in enumerate(config.refinement) if c is call)]
+    # Preprocess stages that can repeat what they did to the pair (row_align's plane) do so
+    # instead of measuring the mirrored pair again.
+    notes = prepared.state.notes
+    preprocess = [replace(c, params=c.stage.traits.mirrored_params(c.params, notes.get(c.stage.name)))
+                  if c.stage.traits.mirrored_params else c for c in config.preprocess]
     saved = _current_config[0]
     try:
-        result = match_pair(flip(right), flip(left), replace(config, refinement=before),
+        result = match_pair(flip(right), flip(left), replace(config, preprocess=preprocess, refinement=before),
                             min_disp=prepared.state.min_disp, ndisp=prepared.state.ndisp,
                             left_valid=flip(right_valid), right_valid=flip(left_valid),
                             keep_invalid=prepared.keep_invalid)

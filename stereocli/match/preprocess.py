@@ -10,6 +10,7 @@ on the whole image (before any row strips), with OpenCV.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -190,8 +191,23 @@ class RowAlignParams:
     tilt_y: float = param(0.0, "with measure: false, the change of that offset across the image height", unit="px", low=-50.0, high=50.0)
 
 
+def _mirrored_row_align(p: RowAlignParams, note: dict | None) -> RowAlignParams:
+    """The pair's plane given to the mirrored pair (the flipped right view as the left, the
+    flipped left view as the right), whose right view must move the other way.
+
+    Swapping the views negates the offset and its change down the image; flipping the columns
+    negates the change across them once more, so ``tilt_x`` keeps its sign. A pair left as it
+    was (too few tracks, scattered ones, an offset too small) stays as it is mirrored too. The
+    plane is read at the other view's column (``x − d``): with a tilt of 1 px across the width
+    and disparities of a tenth of it, 0.1 px off at most, well within the fit's spread."""
+    if note is None or not note.get("applied"):
+        return dataclasses.replace(p, measure=False, offset=0.0, tilt_x=0.0, tilt_y=0.0)
+    return dataclasses.replace(p, measure=False, offset=-note["offset_px"], tilt_x=note["tilt_x_px"],
+                               tilt_y=-note["tilt_y_px"])
+
+
 @register("preprocess", "row_align", RowAlignParams,
-          traits=StageTraits(reads_left_colour=False, reads_right_colour=False))
+          traits=StageTraits(reads_left_colour=False, reads_right_colour=False, mirrored_params=_mirrored_row_align))
 def row_align(state: MatchState, p: RowAlignParams) -> None:
     """Resample the right view onto the left view's rows: corrects a residual vertical offset.
 

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..registry import StageTraits, param, register
+from .kernels import maps as km
 from .state import MatchState
 
 
@@ -46,11 +47,11 @@ def sample_right_map(disparity: np.ndarray, right_map: np.ndarray) -> np.ndarray
 def fuse_with_mirrored(disparity: np.ndarray, right_map: np.ndarray, tolerance: float) -> np.ndarray:
     """(H, W) float32: the mean of each left pixel's disparity and ``right_map`` at the pixel it
     matches (:func:`sample_right_map`) where the two differ by less than ``tolerance`` px; the
-    left disparity elsewhere (invalid pixels stay invalid)."""
-    sampled = sample_right_map(disparity, right_map)  # +inf wherever the left value is
-    agree = np.isfinite(sampled)
-    agree[agree] = np.abs(sampled[agree] - disparity[agree]) < tolerance
-    return np.where(agree, np.float32(0.5) * (disparity + sampled), disparity).astype(np.float32)
+    left disparity elsewhere (invalid pixels stay invalid). One compiled pass over the rows
+    (:func:`~stereocli.match.kernels.maps.fuse_mirrored`; 0.3 ms instead of 9 with numpy
+    temporaries on a 0.35 MP pair)."""
+    return km.fuse_mirrored(np.ascontiguousarray(disparity, dtype=np.float32),
+                            np.ascontiguousarray(right_map, dtype=np.float32), tolerance)
 
 
 @register("refinement", "mirror_fusion", MirrorFusionParams, traits=StageTraits(needs_mirrored=True))

@@ -47,6 +47,56 @@ def lr_check_onto(disp_left: np.ndarray, disp_right: np.ndarray, max_diff: float
 
 
 @chunk_kernel
+def _fuse_mirrored_rows(disp, right_map, tolerance: float, out, y0: int, y1: int) -> None:
+    """:func:`fuse_mirrored` on rows ``y0`` to ``y1`` (exclusive) of ``out``."""
+    w = disp.shape[1]
+    half = np.float32(0.5)
+    tol = np.float32(tolerance)  # compared in float32, as numpy compares a float32 map with a float
+    for y in range(y0, y1):
+        for x in range(w):
+            d = disp[y, x]
+            out[y, x] = d
+            if not np.isfinite(d):
+                continue
+            x_right = np.float32(x) - d
+            if x_right < 0 or x_right > w - 1:
+                continue
+            if w < 2:
+                sampled = right_map[y, x]
+                if not np.isfinite(sampled):
+                    continue
+            else:
+                # The two columns around x − d; at x − d = W − 1 exactly, (W − 2, W − 1) at weight 1.
+                column = min(int(np.floor(x_right)), w - 2)
+                weight = x_right - np.float32(column)
+                before, after = right_map[y, column], right_map[y, column + 1]
+                # A column read at weight 0 may be invalid.
+                if not np.isfinite(before):
+                    if weight != 1:
+                        continue
+                    before = np.float32(0)
+                if not np.isfinite(after):
+                    if weight != 0:
+                        continue
+                    after = np.float32(0)
+                sampled = before + weight * (after - before)
+            if abs(sampled - d) < tol:
+                out[y, x] = half * (d + sampled)
+
+
+def fuse_mirrored(disp: np.ndarray, right_map: np.ndarray, tolerance: float) -> np.ndarray:
+    """(H, W) float32: the mean of each left disparity ``d`` and ``right_map`` read at column
+    ``x − d`` of its row (linear interpolation between the two nearest columns) where the two
+    differ by less than ``tolerance`` px; ``d`` itself where they do not, where ``x − d`` falls
+    outside ``[0, W − 1]`` or a column read at a weight above 0 is invalid. ``disp`` (H, W)
+    float32 px left-referenced, +inf invalid; ``right_map`` (H, W) float32 px referenced to the
+    right image."""
+    out = np.empty_like(disp)
+    for_rows(_fuse_mirrored_rows, disp.shape[0], disp, right_map, float(tolerance), out)
+    return out
+
+
+@chunk_kernel
 def _fill_background_rows(disp, out, y0: int, y1: int) -> None:
     """:func:`fill_background` on rows ``y0`` to ``y1`` (exclusive) of ``out``."""
     w = disp.shape[1]
