@@ -230,13 +230,19 @@ def apply_set(config: dict, assignment: str) -> dict:
                 raise ConfigError(f"{where}: {section} has {len(stages_)} stages")
             entry = stages_[idx]
         else:
-            matches = [s for s in stages_ if s.get("name") == target]
+            matches = [i for i, s in enumerate(stages_) if s.get("name") == target]
             if not matches:
                 listed = [s.get("name") for s in stages_]
                 raise ConfigError(
                     f"{where}: no stage {target!r} in {section}" + _suggest(target, listed)
                 )
-            entry = matches[0]
+            if len(matches) > 1:
+                # E.g. quality's two geodesic_vote stages (rows, columns): editing the first one
+                # silently would leave the other as it was.
+                at = ", ".join(str(i) for i in matches)
+                raise ConfigError(f"{where}: {section} has {len(matches)} {target!r} stages (at {at}); "
+                                  f"address one by its index, e.g. {section}.{matches[0]}.{key}")
+            entry = stages_[matches[0]]
         entry[key] = value
         return out
     if len(parts) != 2:
