@@ -905,23 +905,20 @@ def _vote_chunk(disp, bins, packed, centre, passed, min_change: int, max_bins: i
                     # Each bin's mass: its own vote, then the forward and the backward running
                     # votes (each holds a bin once; the backward one is found through entry).
                     best, best_m, best_s = -1, -1.0, 0.0
-                    own_seen = False
-                    own_m = 1.0  # the own bin's mass, set below in either case
+                    own_m = 0.0  # the own bin's mass once counted (at least its own vote, 1)
                     f_n = fn[ci]
                     for i in range(f_n):
                         b = fk[ci, i]
                         m, s = fm[ci, i], fs[ci, i]
                         if b == k:
                             m, s = 1.0 + m, d + s
-                            own_seen = True
                         m, s = _plus_kept(mm, ss, entry, scale, b, m, s)
                         if b == k:
                             own_m = m
                         best, best_m, best_s = _heavier(best, best_m, best_s, b, m, s)
-                    if not own_seen:
-                        m, s = _plus_kept(mm, ss, entry, scale, k, 1.0, np.float64(d))
-                        own_m = m
-                        best, best_m, best_s = _heavier(best, best_m, best_s, k, m, s)
+                    if own_m == 0.0:  # the forward vote does not hold the own bin
+                        own_m, s = _plus_kept(mm, ss, entry, scale, k, 1.0, np.float64(d))
+                        best, best_m, best_s = _heavier(best, best_m, best_s, k, own_m, s)
                     for i in range(n):  # backward bins neither own nor forward
                         b = kk[i]
                         if b != k and not _holds(fk[ci], f_n, b):
