@@ -119,6 +119,10 @@ class StageTraits:
     #: Bytes per cell of the integer volume the stage leaves when ``state.wants.integer_cost``
     #: (0: always float32).
     integer_cost_itemsize: int = 0
+    #: ``f(params) -> params``: the stage's params at a coarse-to-fine optimizer's coarse level,
+    #: whose map only bounds the full-resolution search: where a costlier cost variant does
+    #: not change those bounds, the coarse level runs the cheaper one.
+    coarse_params: Callable | None = None
 
     # -- optimizers -----------------------------------------------------------------------
     #: Takes each pixel's lowest cost and nothing else, so a cost stage's ``fused_wta`` may

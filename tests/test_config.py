@@ -47,7 +47,7 @@ def test_set_edits_listed_stage_by_name():
     "content, expected",
     [
         ("cost: {name: censsus}\n", ["cost.name", "censsus", "did you mean 'census'"]),
-        ("cost: {name: census, windw: [7, 9]}\n", ["cost.windw", "did you mean 'window'", "valid: window"]),
+        ("cost: {name: census, windw: [7, 9]}\n", ["cost.windw", "did you mean 'window'", "valid: gamma_c, window"]),
         ("cost: {name: census, window: seven}\n", ["cost.window", "expected a pair"]),
         ("refinement: [{name: median, size: 99}]\n", ["median", "size", "out of range"]),
         ("refinement: [{name: subpixel, method: cubic}]\n", ["method", "'cubic' is not one of", "parabola"]),

@@ -263,6 +263,116 @@ def test_census_transform_bit_strings(window):
             assert int(got[y, x]) == expected
 
 
+def weighted_census_reference(left, right, window, gamma, nd):
+    """Census with colour-weighted bits, pixel by pixel: neighbour i weighs
+    q_i = round(7·exp(−(Δ_i/γ)²)), Δ_i its largest channel difference from the centre in the
+    left image (border replicated); the cost is Σ q_i·[bit i differs], scaled by
+    resolution·n / Σ q_i (every q_i = 7 if they are all 0) and rounded, in float32 as the kernel."""
+    hh, hw = window[0] // 2, window[1] // 2
+    n = window[0] * window[1] - 1
+    resolution = 255 // n
+    colour = _ch(left)
+    h, w = colour.shape[:2]
+
+    def offsets():
+        return [(dy, dx) for dy in range(-hh, hh + 1) for dx in range(-hw, hw + 1) if dy or dx]
+
+    def bits(grey, y, x):
+        return np.array([grey[min(max(y + dy, 0), h - 1), min(max(x + dx, 0), w - 1)] < grey[y, x]
+                         for dy, dx in offsets()])
+
+    from stereocli.match.state import luma  # the grey images the census strings are made of
+
+    gl = luma(np.ascontiguousarray(colour)) if colour.shape[2] == 3 else colour[..., 0]
+    gr = luma(np.ascontiguousarray(_ch(right))) if colour.shape[2] == 3 else _ch(right)[..., 0]
+    out = np.full((h, w, nd), resolution * n, np.float64)
+    for y in range(h):
+        for x in range(w):
+            steps = np.array([np.abs(colour[min(max(y + dy, 0), h - 1), min(max(x + dx, 0), w - 1)] - colour[y, x]).max()
+                              for dy, dx in offsets()])
+            q = np.rint(7 * np.exp(-(steps / gamma) ** 2))
+            if q.sum() == 0:
+                q[:] = 7
+            scale = np.float32(resolution * n) / np.float32(q.sum())
+            for k in range(nd):
+                if x - k >= 0:
+                    differ = bits(gl, y, x) != bits(gr, y, x - k)
+                    out[y, x, k] = np.floor(np.float32(q[differ].sum()) * scale + np.float32(0.5))
+    return out
+
+
+@pytest.mark.parametrize("color, window", [(True, (3, 3)), (True, (5, 5)), (True, (3, 13)), (False, (5, 5))])
+def test_weighted_census_matches_a_numpy_reference(color, window):
+    # (3, 13) has 38 bits: their weights are built in two halves, as the strings are.
+    left, right = tiny(color, seed=4, h=8, w=17)
+    gamma = 70.0
+    st = run_stages(left, right, 5, [("cost", "census", {"window": list(window), "gamma_c": gamma})])
+    n = window[0] * window[1] - 1
+    assert st.cost_max == (255 // n) * n
+    np.testing.assert_array_equal(st.cost, weighted_census_reference(left, right, window, gamma, 5))
+
+
+def two_colour_scene(h=48, w=96, d_bg=3, d_fg=10, seed=0):
+    """A reddish object (disparity ``d_fg``) in front of a greenish background (``d_bg``), each
+    with a weak texture of its own (±12 grey levels), rendered exactly in both views."""
+    import cv2
+
+    rng = np.random.default_rng(seed)
+
+    def texture(base):
+        t = cv2.GaussianBlur(rng.normal(0, 1, (h, w + 40)).astype(np.float32), (0, 0), 1.0)
+        return np.clip(np.asarray(base, np.float32) + (t / t.std() * 12.0)[..., None], 0, 255)
+
+    back, front = texture((70, 110, 60)), texture((190, 90, 80))
+    y0, y1, x0, x1 = h // 4, 3 * h // 4, w // 3, 2 * w // 3
+    xs = np.arange(w)
+    left = back[:, :w].copy()
+    left[y0:y1, x0:x1] = front[y0:y1, x0:x1]
+    right = back[:, xs + d_bg].copy()
+    inside = (xs + d_fg >= x0) & (xs + d_fg < x1)
+    right[y0:y1][:, inside] = front[y0:y1][:, (xs + d_fg)[inside]]
+    gt = np.full((h, w), d_bg, np.float32)
+    gt[y0:y1, x0:x1] = d_fg
+    return np.ascontiguousarray(left), np.ascontiguousarray(right), gt, (y0, y1, x0, x1)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_weighted_census_keeps_the_background_beside_an_object(seed):
+    # Right of the object the background is visible in both views, but a 5x5 census window
+    # there still holds two columns of the object, which match at the object's disparity: the
+    # background takes it (fattening). Weighted by colour, those bits count little.
+    left, right, gt, (y0, y1, x0, x1) = two_colour_scene(seed=seed)
+    beside = np.zeros(gt.shape, bool)
+    beside[y0 + 2:y1 - 2, x1:x1 + 2] = True  # the two background columns right of the object
+    inner = np.zeros(gt.shape, bool)
+    inner[4:-4, 16:-4] = True
+    inner[y0 - 3:y1 + 3, x0 - 10:x1 + 3] = False  # away from the object's edges and occlusion
+    wrong = {}
+    for gamma in (0.0, 60.0):
+        d = wta(run_stages(left, right, 16, [("cost", "census", {"window": [5, 5], "gamma_c": gamma})]))
+        wrong[gamma] = ((d != gt)[beside].sum(), (d != gt)[inner].sum())
+    assert wrong[0.0][0] >= 10  # plain census: a quarter or more of the strip fattened
+    assert wrong[60.0][0] <= 3
+    assert wrong[60.0][1] <= wrong[0.0][1] + 2  # and no worse inside the surfaces
+
+
+def test_weighted_census_coarse_level_takes_plain_distances(monkeypatch):
+    # A coarse-to-fine SGM's coarse level only bounds the search: it runs without the weights.
+    from stereocli.match.config import build_config
+    from stereocli.match.kernels import census as kc
+    from stereocli.match.pipeline import match_pair
+
+    shapes = []
+    original = kc.support_planes
+    monkeypatch.setattr(kc, "support_planes", lambda image, *a: shapes.append(image.shape[:2]) or original(image, *a))
+    left, right, gt, _ = two_colour_scene(h=64, w=128)
+    cfg = build_config(sets=["cost.name=census", "cost.window=[5,5]", "cost.gamma_c=60", "optimizer.name=sgm",
+                             "optimizer.coarse=true", "optimizer.coarse_min_volume=0", "optimizer.coarse_min_ndisp=0"])
+    out = match_pair(left, right, cfg, ndisp=16).disparity
+    assert shapes == [(64, 128)]
+    assert np.mean(np.abs(out - gt)[8:-8, 24:-8] <= 1) > 0.9
+
+
 @pytest.mark.parametrize("threads", [1, 2])
 def test_nearest_bit_strings_match_a_numpy_reference_ties_included(threads):
     from stereocli.match.kernels import set_threads

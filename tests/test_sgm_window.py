@@ -152,6 +152,15 @@ def test_windowed_census_costs_equal_the_dense_volume():
     dense = kc.hamming_volume(left, right, min_disp, nd, 34.0, np.uint8)
     mask_invalid_right(dense, valid, min_disp, np.float32(34.0))
     np.testing.assert_array_equal(got, kw.gather_runs(dense, runs[2], runs[3], runs[4], runs[5]))
+    # Weighted bits (census gamma_c): the same costs on the runs as in the dense volume.
+    image = rng.uniform(0, 255, (h, w, 3)).astype(np.float32)
+    planes, scale, cost_max = kc.support_planes(image, 2, 3, 40.0)  # 34 bits, as the strings
+    support = (planes, scale)
+    got = kc.hamming_runs(left, right, min_disp, cost_max, runs[2], runs[3], runs[4], runs[5], valid, support)
+    dense = kc.hamming_volume(left, right, min_disp, nd, cost_max, np.uint8, support)
+    mask_invalid_right(dense, valid, min_disp, np.float32(cost_max))
+    assert dense.max() > 34  # on the weighted scale (up to 7 per bit), not the Hamming one
+    np.testing.assert_array_equal(got, kw.gather_runs(dense, runs[2], runs[3], runs[4], runs[5]))
 
 
 def test_search_windows_cover_the_coarse_neighbourhood():

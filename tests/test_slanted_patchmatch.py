@@ -173,3 +173,32 @@ def test_zero_iterations_is_the_plane_fit():
 def test_census_window_must_be_odd():
     with pytest.raises(ConfigError, match="census"):
         registry.get("refinement", "slanted_patchmatch").make_params({"census": [4, 7]})
+
+
+@pytest.mark.parametrize("same_plane, expected", [(0.01, 5.05), (0.1, 5.0)])
+def test_same_plane_skips_only_neighbour_planes_within_it(same_plane, expected):
+    # Three pixels in a row, a flat image (every census code 0), and a prior at 5.05 that makes
+    # a plane's cost its distance from 5.05: the left neighbour's plane (5.05, 0.05 from the
+    # middle pixel's 5.0 everywhere) is the cheapest, and is tried only if it differs by more
+    # than same_plane; the right neighbour's (5.5) is tried and loses.
+    pa, pb = np.zeros((1, 3)), np.zeros((1, 3))
+    pc = np.array([[5.05, 5.0, 5.5]])
+    codes = np.zeros((1, 3), np.uint64)
+    guide = np.zeros((1, 3), np.int64)
+    weights = np.ones(256)
+    prior = np.full((1, 3), 5.05, np.float32)
+    window = (codes, codes, guide, weights, prior, 1, 1, 1, 5.0, 1.0, 10.0)
+    cost = ksl.plane_costs(pa, pb, pc, *window)
+    changed = np.ones((1, 3), np.bool_)
+    ksl.sweep(pa, pb, pc, cost, changed, False, 1, 0, 0.0, 0.0, 0, 10.0, same_plane, 0.0, 20.0, *window)
+    assert pc[0, 1] == expected
+    assert pc[0, 0] == 5.05 and pc[0, 2] == 5.5  # the other parity is not swept
+
+
+def test_same_plane_beyond_every_difference_leaves_the_plane_fit():
+    left, right, truth = textured_pair(24, 40, (0.06, 0.03, 4.3))
+    locked = np.rint(truth).astype(np.float32)
+    fitted = run_stage(left, right, locked, 16, iterations=0, samples=0)
+    skipped = run_stage(left, right, locked, 16, iterations=2, samples=0, same_plane=100.0)
+    np.testing.assert_array_equal(skipped, fitted)
+    assert not np.array_equal(run_stage(left, right, locked, 16, iterations=2, samples=0), fitted)

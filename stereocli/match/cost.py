@@ -18,7 +18,7 @@ and ordinal measures work on the grey image).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -365,9 +365,21 @@ def bt_cost(state: MatchState, p: BTParams) -> None:
 @dataclass(frozen=True)
 class CensusParams:
     window: tuple[int, int] = param((7, 9), "census window (height, width), odd; at most 65 pixels", unit="px", low=1, high=15)
+    gamma_c: float = param(0.0, "colour-adaptive support: a bit weighs exp(−(Δ/γc)²), Δ the largest channel difference between its neighbour and the centre in the left image; 0: every bit weighs 1 (the Hamming distance)", unit="grey levels", low=0.0, high=1000.0)
 
     def __post_init__(self):
         check_odd_window("cost.window", self.window, 65)
+
+
+def _census_weighted(params: CensusParams) -> bool:
+    """with ``gamma_c`` > 0"""
+    return params.gamma_c > 0
+
+
+def _census_coarse(params: CensusParams) -> CensusParams:
+    # The weights cost as much as the rest of the coarse level and leave MiddEval3's search
+    # windows, and so the scores, as they are: the coarse level takes plain distances.
+    return replace(params, gamma_c=0.0)
 
 
 def _census_strings(state: MatchState, window: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
@@ -377,34 +389,51 @@ def _census_strings(state: MatchState, window: tuple[int, int]) -> tuple[np.ndar
             kc.census_transform(np.ascontiguousarray(state.gray("right")), wh // 2, ww // 2))
 
 
+def _census_support(state: MatchState, p: CensusParams) -> tuple[tuple[np.ndarray, np.ndarray], float]:
+    """``(support, cost_max)`` of the census distances: the bit weights of
+    :func:`~stereocli.match.kernels.census.support_planes` on the left image with ``gamma_c``
+    > 0, else plain Hamming distances (range: the number of bits)."""
+    wh, ww = p.window
+    if p.gamma_c <= 0:
+        return kc.NO_SUPPORT, float(wh * ww - 1)
+    planes, scale, cost_max = kc.support_planes(_channels(state.left), wh // 2, ww // 2, float(p.gamma_c))
+    return (planes, scale), float(cost_max)
+
+
 def _census_windowed(state: MatchState, p: CensusParams, runs) -> tuple[np.ndarray, float]:
-    """Census Hamming costs on the runs of a windowed SGM only (ragged uint8, see
+    """Census costs on the runs of a windowed SGM only (ragged uint8, see
     :func:`stereocli.match.kernels.sgm_window.window_runs`), honouring ``right_valid``;
     returns ``(costs, cost_max)``."""
-    wh, ww = p.window
     left, right = _census_strings(state, p.window)
-    cost_max = float(wh * ww - 1)
+    support, cost_max = _census_support(state, p)
     valid = state.right_valid if state.right_valid is not None else np.zeros((0, 0), np.bool_)
     _, _, run_lo, run_hi, offset, n = runs
-    return kc.hamming_runs(left, right, state.min_disp, cost_max, run_lo, run_hi, offset, n, valid), cost_max
+    return kc.hamming_runs(left, right, state.min_disp, cost_max, run_lo, run_hi, offset, n, valid, support), cost_max
 
 
 # With ``state.wants.integer_cost`` the Hamming distances stay uint8 (1 byte per cell).
 @register("cost", "census", CensusParams,
-          traits=StageTraits(integer_cost_itemsize=1, windowed=_census_windowed, reads_left_colour=False,
-                             reads_right_colour=False))
+          traits=StageTraits(integer_cost_itemsize=1, windowed=_census_windowed, reads_left_colour=_census_weighted,
+                             reads_right_colour=False, coarse_params=_census_coarse))
 def census_cost(state: MatchState, p: CensusParams) -> None:
     """Hamming distance of census transforms (Zabih & Woodfill 1994) on the grey images.
 
     Each pixel becomes a bit string (neighbour darker than the centre); the cost is the
     popcount of the XOR. Robust to monotonic radiometric changes between the views; larger
     windows are more discriminative and slower. The default for SGM. Range [0, n − 1].
+
+    With ``gamma_c`` > 0, each bit weighs by how close its neighbour's colour is to the
+    centre's in the left image (adaptive support weights, Yoon & Kweon 2006, applied to the
+    census bits). Where the window straddles a depth edge, the bits on the other surface
+    count little, so the background beside an object is no longer matched at the object's
+    disparity (foreground fattening). The weights are quantised to 0–7, and the weighted
+    distance is scaled to the largest multiple of n − 1 that fits in a byte (240 for 5×5), so
+    the costs stay uint8. A coarse-to-fine SGM's coarse level takes plain distances.
     """
-    wh, ww = p.window
     left, right = _census_strings(state, p.window)
-    state.cost_max = float(wh * ww - 1)
+    support, state.cost_max = _census_support(state, p)
     dtype = np.uint8 if state.wants.integer_cost else np.float32
-    state.cost = kc.hamming_volume(left, right, state.min_disp, state.ndisp, state.cost_max, dtype)
+    state.cost = kc.hamming_volume(left, right, state.min_disp, state.ndisp, state.cost_max, dtype, support)
 
 
 @dataclass(frozen=True)

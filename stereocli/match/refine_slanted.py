@@ -28,6 +28,7 @@ class SlantedPatchMatchParams:
     prior: float = param(4.0, "weight of the input map: each window pixel adds prior·min(|d − input|, prior_cap)", low=0.0, high=1000.0)
     prior_cap: float = param(1.0, "truncation of the input-map term", unit="px", low=0.0, high=1000.0)
     band: float = param(0.5, "a pixel's disparity stays within this distance of its input value", unit="px", low=0.0, high=1000.0)
+    same_plane: float = param(0.0, "a neighbour's plane is not tried where it stays within this distance of the pixel's own across the whole window (its cost could hardly differ); 0: only identical planes are skipped", unit="px", low=0.0, high=100.0)
     iterations: int = param(2, "PatchMatch iterations (each: propagation + random search, red then black pixels)", low=0, high=20)
     samples: int = param(1, "random plane perturbations tried per pixel and iteration", low=0, high=16)
     shift: float = param(0.5, "range of the random disparity perturbation (halved every iteration)", unit="px", low=0.0, high=100.0)
@@ -82,5 +83,6 @@ def slanted_patchmatch(state: MatchState, p: SlantedPatchMatchParams) -> None:
             scale = 0.5 ** it
             for parity in (0, 1):
                 ksl.sweep(pa, pb, pc, cost, changed, it > 0, parity, int(p.seed) * 1009 + 2 * it + parity,
-                          p.shift * scale, p.slope * scale, int(p.samples), float(p.band), lo, hi, *window)
+                          p.shift * scale, p.slope * scale, int(p.samples), float(p.band), float(p.same_plane), lo, hi,
+                          *window)
     state.disparity = ksl.plane_disparity(pa, pb, pc)

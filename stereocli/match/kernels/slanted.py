@@ -196,8 +196,9 @@ NEIGHBOURS = np.array([[0, -1], [0, 1], [-1, 0], [1, 0]], np.int64)
 
 @chunk_kernel
 def _sweep_rows(pa, pb, pc, cost, changed, only_changed: bool, parity: int, seed: int, shift: float, slope: float,
-                samples: int, band: float, lo: float, hi: float, codes_left, codes_right, guide, weights, prior,
-                up: int, radius: int, stride: int, tau: float, lam: float, cap: float, y0: int, y1: int) -> None:
+                samples: int, band: float, same_plane: float, lo: float, hi: float, codes_left, codes_right, guide,
+                weights, prior, up: int, radius: int, stride: int, tau: float, lam: float, cap: float, y0: int,
+                y1: int) -> None:
     """:func:`sweep` of rows ``[y0, y1)``."""
     h, w = pa.shape
     for y in range(y0, y1):
@@ -219,6 +220,9 @@ def _sweep_rows(pa, pb, pc, cost, changed, only_changed: bool, parity: int, seed
                 d = a * x + b * y + c
                 if d < lo or d > hi or abs(d - d0) > band:
                     continue
+                # The largest difference between the two planes over the window (at a corner).
+                if abs(d - (ba * x + bb * y + bc)) + radius * (abs(a - ba) + abs(b - bb)) <= same_plane:
+                    continue
                 cc = plane_cost(y, x, a, b, c, codes_left, codes_right, guide, weights, prior, up, radius, stride,
                                 tau, lam, cap)
                 if cc < best:
@@ -239,14 +243,16 @@ def _sweep_rows(pa, pb, pc, cost, changed, only_changed: bool, parity: int, seed
 
 
 def sweep(pa, pb, pc, cost, changed, only_changed: bool, parity: int, seed: int, shift: float, slope: float,
-          samples: int, band: float, lo: float, hi: float, codes_left, codes_right, guide, weights, prior, up: int,
-          radius: int, stride: int, tau: float, lam: float, cap: float) -> None:
+          samples: int, band: float, same_plane: float, lo: float, hi: float, codes_left, codes_right, guide, weights,
+          prior, up: int, radius: int, stride: int, tau: float, lam: float, cap: float) -> None:
     """One half-iteration of red-black PatchMatch, in place: every pixel with
     ``(x + y) % 2 == parity`` tries its four neighbours' planes (which have the other parity,
     so no pixel reads a plane written in the same sweep and the result does not depend on the
     thread count), then ``samples`` random perturbations of its best plane (disparity at the
     pixel ±``shift``, slopes ±``slope``), and keeps the cheapest. A plane is only tried when
-    its disparity at the pixel lies in ``[lo, hi]`` and within ``band`` px of ``prior``.
+    its disparity at the pixel lies in ``[lo, hi]`` and within ``band`` px of ``prior``, and a
+    neighbour's plane only when it departs from the pixel's best so far by more than
+    ``same_plane`` px somewhere in the window.
 
     ``changed`` (H, W) bool records whether each pixel's plane changed in its last sweep. With
     ``only_changed`` (every sweep after a pixel's first) a neighbour's plane is tried only if
@@ -254,8 +260,8 @@ def sweep(pa, pb, pc, cost, changed, only_changed: bool, parity: int, seed: int,
     time, whose cost has not changed and did not beat the pixel's plane then (the plane a pixel
     keeps only gets cheaper), so the result is the same as trying it again."""
     for_rows(_sweep_rows, pa.shape[0], pa, pb, pc, cost, changed, bool(only_changed), int(parity), int(seed),
-             float(shift), float(slope), int(samples), float(band), float(lo), float(hi), codes_left, codes_right,
-             guide, weights, prior, int(up), int(radius), int(stride), float(tau), float(lam), float(cap))
+             float(shift), float(slope), int(samples), float(band), float(same_plane), float(lo), float(hi), codes_left,
+             codes_right, guide, weights, prior, int(up), int(radius), int(stride), float(tau), float(lam), float(cap))
 
 
 @chunk_kernel

@@ -109,6 +109,9 @@ def coarse_disparity(state: MatchState, p: SGMParams, cost) -> np.ndarray:
                      wants=Wants(right=True, integer_cost=state.wants.integer_cost, volume=False))
     # run_sgm computes this level's costs itself (windowed if it searches coarse to fine again,
     # else the full range) and only its winners are read here.
+    coarse_params = cost.stage.traits.coarse_params
+    if coarse_params is not None:
+        cost = replace(cost, params=coarse_params(cost.params))
     run_sgm(sub, replace(p, paths=p.coarse_paths or p.paths, coarse_levels=p.coarse_levels - 1), cost,
             coarse=p.coarse_levels > 1)
     return lr_check(sub.disparity, sub.disparity_right, 1.0)
