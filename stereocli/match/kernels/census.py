@@ -213,13 +213,11 @@ NO_SUPPORT = (np.zeros((0, 0, 3), np.uint64), np.zeros((0, 0), np.float32))
 
 
 @chunk_kernel
-def _hamming_rows(census_left, census_right, planes, scale, min_disp: int, cost_max: float, out, y0: int,
-                  y1: int) -> None:
+def _hamming_rows(census_left, census_right, min_disp: int, cost_max: float, out, y0: int, y1: int) -> None:
     """:func:`hamming_volume` of rows ``[y0, y1)``, written into ``out``."""
     w = census_left.shape[1]
     nd = out.shape[2]
     top = out.dtype.type(cost_max)
-    weighted = planes.shape[0] > 0
     for y in range(y0, y1):
         # The right row reversed, so hypothesis k reads forward: right[x − min_disp − k] =
         # reversed[w − 1 − x + min_disp + k] (contiguous loads; the loop vectorises).
@@ -231,16 +229,7 @@ def _hamming_rows(census_left, census_right, planes, scale, min_disp: int, cost_
             k0 = max(0, x - min_disp - (w - 1))
             k1 = min(nd - 1, x - min_disp)
             base = w - 1 - x + min_disp
-            if weighted:
-                p0, p1, p2, s = planes[y, x, 0], planes[y, x, 1], planes[y, x, 2], scale[y, x]
-                if k0 == 0 and k1 == nd - 1:
-                    src = reversed_right[base:base + nd]
-                    for k in range(nd):
-                        o[k] = _weighted_distance(cl ^ src[k], p0, p1, p2, s)
-                else:
-                    for k in range(nd):
-                        o[k] = _weighted_distance(cl ^ reversed_right[base + k], p0, p1, p2, s) if k0 <= k <= k1 else top
-            elif k0 == 0 and k1 == nd - 1:
+            if k0 == 0 and k1 == nd - 1:
                 # Every hypothesis inside (most pixels): one loop over the whole range. (Loops
                 # over sub-slices with run-time bounds ran 2-5x slower.)
                 src = reversed_right[base:base + nd]
@@ -252,13 +241,39 @@ def _hamming_rows(census_left, census_right, planes, scale, min_disp: int, cost_
 
 
 @chunk_kernel
-def _hamming_runs_rows(census_left, census_right, planes, scale, min_disp: int, cost_max: float, run_lo, run_hi,
-                       offset, right_valid, out, y0: int, y1: int) -> None:
+def _weighted_rows(census_left, census_right, planes, scale, min_disp: int, cost_max: float, out, y0: int,
+                   y1: int) -> None:
+    """:func:`hamming_volume` with bit weights, of rows ``[y0, y1)``, written into ``out``."""
+    # A kernel of its own: with both kinds of distance in one kernel the plain runs' loop
+    # no longer vectorised (3x slower).
+    w = census_left.shape[1]
+    nd = out.shape[2]
+    top = out.dtype.type(cost_max)
+    for y in range(y0, y1):
+        reversed_right = census_right[y, ::-1].copy()  # hypothesis k reads forward (as above)
+        for x in range(w):
+            o = out[y, x]
+            cl = census_left[y, x]
+            k0 = max(0, x - min_disp - (w - 1))
+            k1 = min(nd - 1, x - min_disp)
+            base = w - 1 - x + min_disp
+            p0, p1, p2, s = planes[y, x, 0], planes[y, x, 1], planes[y, x, 2], scale[y, x]
+            if k0 == 0 and k1 == nd - 1:
+                src = reversed_right[base:base + nd]
+                for k in range(nd):
+                    o[k] = _weighted_distance(cl ^ src[k], p0, p1, p2, s)
+            else:
+                for k in range(nd):
+                    o[k] = _weighted_distance(cl ^ reversed_right[base + k], p0, p1, p2, s) if k0 <= k <= k1 else top
+
+
+@chunk_kernel
+def _hamming_runs_rows(census_left, census_right, min_disp: int, cost_max: float, run_lo, run_hi, offset,
+                       right_valid, out, y0: int, y1: int) -> None:
     """:func:`hamming_runs` of rows ``[y0, y1)``, written into ``out``."""
     w = census_left.shape[1]
     top = np.uint8(cost_max)
     masked = right_valid.shape[0] > 0
-    weighted = planes.shape[0] > 0
     for y in range(y0, y1):
         reversed_right = census_right[y, ::-1].copy()  # hypothesis k reads forward (as above)
         for x in range(w):
@@ -270,17 +285,7 @@ def _hamming_runs_rows(census_left, census_right, planes, scale, min_disp: int, 
             k0 = max(a, x - min_disp - (w - 1))
             k1 = min(b - 1, x - min_disp)
             base = w - 1 - x + min_disp
-            if weighted:
-                p0, p1, p2, s = planes[y, x, 0], planes[y, x, 1], planes[y, x, 2], scale[y, x]
-                if k0 == a and k1 == b - 1:
-                    src = reversed_right[base + a:base + b]
-                    for j in range(b - a):
-                        run[j] = _weighted_distance(cl ^ src[j], p0, p1, p2, s)
-                else:
-                    for j in range(b - a):
-                        k = a + j
-                        run[j] = _weighted_distance(cl ^ reversed_right[base + k], p0, p1, p2, s) if k0 <= k <= k1 else top
-            elif k0 == a and k1 == b - 1:  # the whole run (most pixels): one plain loop
+            if k0 == a and k1 == b - 1:  # the whole run (most pixels): one plain loop
                 src = reversed_right[base + a:base + b]
                 for j in range(b - a):
                     run[j] = _popcount64(cl ^ src[j])
@@ -288,6 +293,38 @@ def _hamming_runs_rows(census_left, census_right, planes, scale, min_disp: int, 
                 for j in range(b - a):
                     k = a + j
                     run[j] = _popcount64(cl ^ reversed_right[base + k]) if k0 <= k <= k1 else top
+            if masked:
+                for k in range(k0, k1 + 1):
+                    if not right_valid[y, x - min_disp - k]:
+                        run[k - a] = top
+
+
+@chunk_kernel
+def _weighted_runs_rows(census_left, census_right, planes, scale, min_disp: int, cost_max: float, run_lo, run_hi,
+                        offset, right_valid, out, y0: int, y1: int) -> None:
+    """:func:`hamming_runs` with bit weights, of rows ``[y0, y1)``, written into ``out``."""
+    w = census_left.shape[1]
+    top = np.uint8(cost_max)
+    masked = right_valid.shape[0] > 0
+    for y in range(y0, y1):
+        reversed_right = census_right[y, ::-1].copy()
+        for x in range(w):
+            cl = census_left[y, x]
+            a = run_lo[y, x]
+            b = run_hi[y, x]
+            run = out[offset[y, x]:offset[y, x] + (b - a)]
+            k0 = max(a, x - min_disp - (w - 1))
+            k1 = min(b - 1, x - min_disp)
+            base = w - 1 - x + min_disp
+            p0, p1, p2, s = planes[y, x, 0], planes[y, x, 1], planes[y, x, 2], scale[y, x]
+            if k0 == a and k1 == b - 1:
+                src = reversed_right[base + a:base + b]
+                for j in range(b - a):
+                    run[j] = _weighted_distance(cl ^ src[j], p0, p1, p2, s)
+            else:
+                for j in range(b - a):
+                    k = a + j
+                    run[j] = _weighted_distance(cl ^ reversed_right[base + k], p0, p1, p2, s) if k0 <= k <= k1 else top
             if masked:
                 for k in range(k0, k1 + 1):
                     if not right_valid[y, x - min_disp - k]:
@@ -303,8 +340,12 @@ def hamming_runs(census_left, census_right, min_disp: int, cost_max: float, run_
     ``(planes, scale)`` of :func:`support_planes` for weighted distances (``cost_max`` must
     then be its range), or :data:`NO_SUPPORT`."""
     out = np.empty(n, np.uint8)
-    for_rows(_hamming_runs_rows, census_left.shape[0], census_left, census_right, support[0], support[1], min_disp,
-             cost_max, run_lo, run_hi, offset, right_valid, out)
+    if support[0].shape[0] == 0:
+        for_rows(_hamming_runs_rows, census_left.shape[0], census_left, census_right, min_disp, cost_max, run_lo,
+                 run_hi, offset, right_valid, out)
+    else:
+        for_rows(_weighted_runs_rows, census_left.shape[0], census_left, census_right, support[0], support[1],
+                 min_disp, cost_max, run_lo, run_hi, offset, right_valid, out)
     return out
 
 
@@ -318,8 +359,11 @@ def hamming_volume(census_left: np.ndarray, census_right: np.ndarray, min_disp: 
     """
     h, w = census_left.shape
     out = np.empty((h, w, ndisp), dtype)
-    for_rows(_hamming_rows, h, census_left, census_right, support[0], support[1], int(min_disp), float(cost_max),
-             out)
+    if support[0].shape[0] == 0:
+        for_rows(_hamming_rows, h, census_left, census_right, int(min_disp), float(cost_max), out)
+    else:
+        for_rows(_weighted_rows, h, census_left, census_right, support[0], support[1], int(min_disp),
+                 float(cost_max), out)
     return out
 
 
