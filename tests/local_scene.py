@@ -22,16 +22,7 @@ def scene(h: int = 64, w: int = 96, d_bg: int = 3, d_fg: int = 9, *, color: bool
         t = cv2.GaussianBlur(t, (0, 0), 1.0).reshape(h, w + 40, nc)
         return np.clip((t - t.mean()) * 3 + 128 + level, 0, 255)
 
-    back, front = texture(-30), texture(30)
-    y0, y1, x0, x1 = h // 4, 3 * h // 4, w // 3, 2 * w // 3
-    xs = np.arange(w)
-    left = back[:, :w].copy()
-    left[y0:y1, x0:x1] = front[y0:y1, x0:x1]
-    right = back[:, xs + d_bg].copy()
-    inside = (xs + d_fg >= x0) & (xs + d_fg < x1)
-    right[y0:y1][:, inside] = front[y0:y1][:, (xs + d_fg)[inside]]
-    gt = np.full((h, w), d_bg, np.float32)
-    gt[y0:y1, x0:x1] = d_fg
+    left, right, gt, (y0, y1, x0, x1) = render(texture(-30), texture(30), h, w, d_bg, d_fg)
     mask = np.zeros((h, w), bool)
     mask[8:-8, 16:-8] = True
     # leave out 4 px around the depth edges (windows straddle them) and the occluded band
@@ -42,6 +33,35 @@ def scene(h: int = 64, w: int = 96, d_bg: int = 3, d_fg: int = 9, *, color: bool
     if not color:
         left, right = left[..., 0], right[..., 0]
     return np.ascontiguousarray(left, np.float32), np.ascontiguousarray(right, np.float32), gt, mask
+
+
+def render(back: np.ndarray, front: np.ndarray, h: int, w: int, d_bg: int, d_fg: int):
+    """Both views of a rectangle cut from ``front`` (the middle third of the width, half of the
+    height) at disparity ``d_fg`` before ``back`` at ``d_bg`` (both (h, w + 40, C) textures):
+    ``left, right, gt, (y0, y1, x0, x1)``."""
+    y0, y1, x0, x1 = h // 4, 3 * h // 4, w // 3, 2 * w // 3
+    xs = np.arange(w)
+    left = back[:, :w].copy()
+    left[y0:y1, x0:x1] = front[y0:y1, x0:x1]
+    right = back[:, xs + d_bg].copy()
+    inside = (xs + d_fg >= x0) & (xs + d_fg < x1)
+    right[y0:y1][:, inside] = front[y0:y1][:, (xs + d_fg)[inside]]
+    gt = np.full((h, w), d_bg, np.float32)
+    gt[y0:y1, x0:x1] = d_fg
+    return left, right, gt, (y0, y1, x0, x1)
+
+
+def two_colour_scene(h: int = 48, w: int = 96, d_bg: int = 3, d_fg: int = 10, seed: int = 0):
+    """A reddish object (disparity ``d_fg``) before a greenish background (``d_bg``), each with a
+    weak texture of its own (±12 grey levels): ``left, right, gt, (y0, y1, x0, x1)``."""
+    rng = np.random.default_rng(seed)
+
+    def texture(base):
+        t = cv2.GaussianBlur(rng.normal(0, 1, (h, w + 40)).astype(np.float32), (0, 0), 1.0)
+        return np.clip(np.asarray(base, np.float32) + (t / t.std() * 12.0)[..., None], 0, 255)
+
+    left, right, gt, rect = render(texture((70, 110, 60)), texture((190, 90, 80)), h, w, d_bg, d_fg)
+    return np.ascontiguousarray(left), np.ascontiguousarray(right), gt, rect
 
 
 def run_stages(left, right, ndisp, stages, min_disp=0):

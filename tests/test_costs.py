@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from local_scene import run_stages, scene, wta
+from local_scene import run_stages, scene, two_colour_scene, wta
 from stereocli import registry
 from stereocli.match.config import build_config
 from stereocli.errors import ConfigError
@@ -310,30 +310,6 @@ def test_weighted_census_matches_a_numpy_reference(color, window):
     n = window[0] * window[1] - 1
     assert st.cost_max == (255 // n) * n
     np.testing.assert_array_equal(st.cost, weighted_census_reference(left, right, window, gamma, 5))
-
-
-def two_colour_scene(h=48, w=96, d_bg=3, d_fg=10, seed=0):
-    """A reddish object (disparity ``d_fg``) in front of a greenish background (``d_bg``), each
-    with a weak texture of its own (±12 grey levels), rendered exactly in both views."""
-    import cv2
-
-    rng = np.random.default_rng(seed)
-
-    def texture(base):
-        t = cv2.GaussianBlur(rng.normal(0, 1, (h, w + 40)).astype(np.float32), (0, 0), 1.0)
-        return np.clip(np.asarray(base, np.float32) + (t / t.std() * 12.0)[..., None], 0, 255)
-
-    back, front = texture((70, 110, 60)), texture((190, 90, 80))
-    y0, y1, x0, x1 = h // 4, 3 * h // 4, w // 3, 2 * w // 3
-    xs = np.arange(w)
-    left = back[:, :w].copy()
-    left[y0:y1, x0:x1] = front[y0:y1, x0:x1]
-    right = back[:, xs + d_bg].copy()
-    inside = (xs + d_fg >= x0) & (xs + d_fg < x1)
-    right[y0:y1][:, inside] = front[y0:y1][:, (xs + d_fg)[inside]]
-    gt = np.full((h, w), d_bg, np.float32)
-    gt[y0:y1, x0:x1] = d_fg
-    return np.ascontiguousarray(left), np.ascontiguousarray(right), gt, (y0, y1, x0, x1)
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])

@@ -302,7 +302,8 @@ def _hamming_runs_rows(census_left, census_right, min_disp: int, cost_max: float
 @chunk_kernel
 def _weighted_runs_rows(census_left, census_right, planes, scale, min_disp: int, cost_max: float, run_lo, run_hi,
                         offset, right_valid, out, y0: int, y1: int) -> None:
-    """:func:`hamming_runs` with bit weights, of rows ``[y0, y1)``, written into ``out``."""
+    """:func:`hamming_runs` with bit weights, of rows ``[y0, y1)``, written into ``out`` (a
+    kernel of its own, as :func:`_weighted_rows`)."""
     w = census_left.shape[1]
     top = np.uint8(cost_max)
     masked = right_valid.shape[0] > 0
