@@ -377,8 +377,8 @@ def _census_weighted(params: CensusParams) -> bool:
 
 
 def _census_coarse(params: CensusParams) -> CensusParams:
-    # The weights cost as much as the rest of the coarse level and leave MiddEval3's search
-    # windows, and so the scores, as they are: the coarse level takes plain distances.
+    """plain distances at SGM's coarse level (weighted, it takes a third longer and its search
+    windows leave the scores as they are)"""
     return replace(params, gamma_c=0.0)
 
 

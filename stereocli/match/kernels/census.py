@@ -76,7 +76,7 @@ def _popcount64(v):
 def _bit_count(typingctx, value):
     """The number of set bits of a uint64, as LLVM's ``ctpop``: one instruction (vectorised
     where the CPU has one). :func:`_popcount64`'s SWAR form is recognised as the same
-    instruction in a plain loop, but not when three counts are combined (3x slower)."""
+    instruction in a plain loop, but not when three counts are combined (2.5x slower)."""
     from llvmlite import ir
     from numba import types
 
@@ -245,7 +245,7 @@ def _weighted_rows(census_left, census_right, planes, scale, min_disp: int, cost
                    y1: int) -> None:
     """:func:`hamming_volume` with bit weights, of rows ``[y0, y1)``, written into ``out``."""
     # A kernel of its own: with both kinds of distance in one kernel the plain runs' loop
-    # no longer vectorised (3x slower).
+    # no longer vectorised (about 3x slower).
     w = census_left.shape[1]
     nd = out.shape[2]
     top = out.dtype.type(cost_max)
