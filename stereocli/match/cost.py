@@ -396,7 +396,7 @@ def _census_support(state: MatchState, p: CensusParams) -> tuple[tuple[np.ndarra
     wh, ww = p.window
     if p.gamma_c <= 0:
         return kc.NO_SUPPORT, float(wh * ww - 1)
-    planes, scale, cost_max = kc.support_planes(_channels(state.left), wh // 2, ww // 2, float(p.gamma_c))
+    planes, scale, cost_max = kc.support_planes(state.left, wh // 2, ww // 2, float(p.gamma_c))
     return (planes, scale), float(cost_max)
 
 

@@ -174,7 +174,7 @@ def _support_rows(planar, half_h: int, half_w: int, thresholds, resolution: int,
 
 
 def support_planes(image: np.ndarray, half_h: int, half_w: int, gamma: float) -> tuple[np.ndarray, np.ndarray, int]:
-    """Colour-adaptive weights of the census bits of an (H, W, C) float32 image.
+    """Colour-adaptive weights of the census bits of an (H, W, C) or (H, W) image (float32 levels).
 
     Neighbour ``i`` of pixel ``p`` weighs ``round(7·exp(−(Δ/γ)²))`` (0–7), ``Δ`` the largest
     channel difference between them (grey levels): bits of neighbours on another surface
