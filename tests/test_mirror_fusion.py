@@ -10,7 +10,7 @@ import pytest
 from stereocli.errors import ConfigError
 from stereocli.match.config import build_config
 from stereocli.match.pipeline import match_pair
-from stereocli.match.refine_fusion import fuse_with_mirrored, sample_right_map
+from stereocli.match.refine_fusion import fuse_with_mirrored, reassign_contradicted, sample_right_map
 from stereocli.synth.scenes import render, scene_surfaces
 from test_kernels_sgm import on_one_and_two_threads
 
@@ -98,6 +98,8 @@ def test_the_pipeline_fuses_with_the_stages_before_it_run_on_the_mirrored_pair(t
 def test_a_negative_tolerance_is_a_config_error(tmp_path):
     with pytest.raises(ConfigError, match="tolerance"):
         _config(tmp_path, "{name: mirror_fusion, tolerance: -1.0}")
+    with pytest.raises(ConfigError, match="reassign_radius"):
+        _config(tmp_path, "{name: mirror_fusion, reassign_above: 3.0, reassign_radius: 0}")
 
 
 def fuse_reference(disparity, right_map, tolerance):
@@ -135,3 +137,119 @@ def test_the_compiled_fusion_on_a_one_column_map():
     disparity = np.array([[0.0], [0.5], [INF]], np.float32)
     right_map = np.array([[1.0], [0.0], [0.0]], np.float32)
     np.testing.assert_array_equal(fuse_with_mirrored(disparity, right_map, 2.0), fuse_reference(disparity, right_map, 2.0))
+
+
+# --- reassigning pixels the mirrored map contradicts ---------------------------------------
+
+
+def _fattened_row():
+    """One row, 32 px: background at disparity 2, an object at 6 over left columns 10–19, and
+    a left map whose census windows carried the object's 6 two columns into the background
+    (columns 20, 21). The right-referenced map is exact: the object over right columns 4–13,
+    the background elsewhere (right columns 14–17 are seen by the right view only and hold the
+    background's 2, as a fill gives them)."""
+    truth = np.full(32, 2.0, np.float32)
+    truth[10:20] = 6.0
+    left_map = truth.copy()
+    left_map[20:22] = 6.0
+    right_map = np.full(32, 2.0, np.float32)
+    right_map[4:14] = 6.0
+    return left_map[None], right_map[None], truth[None]
+
+
+def test_a_fattened_rim_takes_the_disparity_the_mirrored_map_confirms():
+    left_map, right_map, truth = _fattened_row()
+    # Column 20 at 6 reads right column 14 (2): contradicted by 4 px. Its neighbours 21 and 19
+    # offer 6 (read at 14 and 14 again: no), 22 offers 2 (read at 18: 2, confirmed).
+    out = reassign_contradicted(left_map, right_map, above=3.0, radius=2, within=1.0)
+    np.testing.assert_array_equal(out, truth)
+    # The background left of the object (columns 6–9) is hidden from the right view: it reads
+    # the object (6) and stays contradicted, but no neighbour's disparity is confirmed there
+    # (the object's 6 read at columns 0–3 finds 2), so it keeps the fill's 2.
+    assert sample_right_map(truth, right_map)[0, 6:10].tolist() == [6.0] * 4
+    # A contradiction of 4 px is not above 4; a radius of 1 reaches only 6s for column 20.
+    np.testing.assert_array_equal(reassign_contradicted(left_map, right_map, 4.0, 2, 1.0), left_map)
+    only_near = reassign_contradicted(left_map, right_map, 3.0, 1, 1.0)
+    assert only_near[0, 20] == 6.0 and only_near[0, 21] == 2.0
+
+
+def test_a_column_neighbour_is_offered_when_the_row_has_none():
+    # Three rows of the fattened row; in the middle one the rim spans columns 20–24, beyond the
+    # row radius, and the rows above and below (already right at 2) supply the disparity.
+    left_map, right_map, truth = (np.repeat(a, 3, axis=0) for a in _fattened_row())
+    left_map[0, 20:22] = truth[0, 20:22]
+    left_map[2, 20:22] = truth[2, 20:22]
+    left_map[1, 20:25] = 6.0
+    out = reassign_contradicted(left_map, right_map, 3.0, 2, 1.0)
+    np.testing.assert_array_equal(out, truth)
+
+
+def reassign_reference(disparity, right_map, above, radius, within):
+    """The reassignment by its definition, with numpy: shifted copies of the map as candidates,
+    in the kernel's order (row before column, nearer first, the right or lower neighbour
+    first), each replacing the choice only if strictly better confirmed."""
+    h, w = disparity.shape
+
+    def contradiction(candidates):
+        with np.errstate(invalid="ignore"):
+            gap = np.abs(sample_right_map(candidates, right_map) - candidates)
+        return np.where(np.isfinite(gap), gap, np.float32(np.inf))
+
+    gap = contradiction(disparity)
+    contradicted = np.isfinite(gap) & (gap > np.float32(above))
+    out, best = disparity.copy(), np.full((h, w), np.inf, np.float32)
+    padded = np.pad(disparity, radius, constant_values=np.inf)
+    for axis in (1, 0):
+        for step in range(1, radius + 1):
+            for offset in (step, -step):
+                dy, dx = (offset, 0) if axis == 0 else (0, offset)
+                candidates = padded[radius + dy:radius + dy + h, radius + dx:radius + dx + w]
+                error = contradiction(candidates)
+                take = contradicted & (error <= np.float32(within)) & (error < best)
+                out = np.where(take, candidates, out)
+                best = np.where(take, error, best)
+    return out.astype(np.float32)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_compiled_reassignment_equals_its_definition(seed):
+    # Random layered maps with holes and a noisy right map, on one and two threads.
+    rng = np.random.default_rng(seed)
+    h, w = 29, 41
+    disparity = rng.choice(np.array([1.0, 4.0, 9.0], np.float32), (h, w)) + rng.uniform(-0.3, 0.3, (h, w))
+    disparity = disparity.astype(np.float32)
+    disparity[rng.random((h, w)) < 0.1] = INF
+    right_map = rng.choice(np.array([1.0, 4.0, 9.0], np.float32), (h, w)) + rng.uniform(-0.6, 0.6, (h, w))
+    right_map = right_map.astype(np.float32)
+    right_map[rng.random((h, w)) < 0.1] = INF
+    for above, radius, within in ((3.0, 2, 1.0), (1.0, 3, 0.5)):
+        want = reassign_reference(disparity, right_map, above, radius, within)
+
+        def run():
+            return reassign_contradicted(disparity, right_map, above, radius, within)
+
+        for got in on_one_and_two_threads(run):
+            np.testing.assert_array_equal(got, want)
+        assert (want != disparity).sum() > 100  # many pixels were reassigned
+
+
+def test_the_stage_reassigns_after_fusing_when_asked(tmp_path):
+    # The mirrored run done by hand, as above; the stage fuses, then reassigns on the fused map.
+    left, right = _scene()
+    ndisp = 32
+    before = _config(tmp_path, BEFORE)
+    left_map = match_pair(left, right, before, ndisp=ndisp).disparity
+    flipped = match_pair(np.ascontiguousarray(right[:, ::-1]), np.ascontiguousarray(left[:, ::-1]), before,
+                         ndisp=ndisp).disparity
+    right_map = np.ascontiguousarray(flipped[:, ::-1])
+    fused = fuse_with_mirrored(left_map, right_map, 1.0)
+    expected = reassign_reference(fused, right_map, 1.0, 2, 1.0)
+    assert (expected != fused).sum() > 0
+
+    stage = "{name: mirror_fusion, tolerance: 1.0, reassign_above: 1.0}"
+    got = match_pair(left, right, _config(tmp_path, BEFORE + ", " + stage), ndisp=ndisp).disparity
+    np.testing.assert_array_equal(got, expected)
+    # reassign_above 0 (the default) only fuses.
+    only_fused = match_pair(left, right, _config(tmp_path, BEFORE + ", {name: mirror_fusion, tolerance: 1.0}"),
+                            ndisp=ndisp).disparity
+    np.testing.assert_array_equal(only_fused, fused)

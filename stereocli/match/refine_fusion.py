@@ -15,6 +15,13 @@ from .state import MatchState
 class MirrorFusionParams:
     tolerance: float = param(1.0, "the two maps are averaged where they differ by less than this", unit="px",
                              low=0.0, high=1000.0)
+    reassign_above: float = param(0.0, "a pixel whose disparity the mirrored map contradicts by more than this takes "
+                                  "a neighbour's disparity the mirrored map confirms (0: never)", unit="px",
+                                  low=0.0, high=1000.0)
+    reassign_radius: int = param(2, "neighbours offering their disparity lie up to this far along the row and the "
+                                 "column", unit="px", low=1, high=20)
+    reassign_within: float = param(1.0, "a neighbour's disparity c is confirmed where the mirrored map, read at "
+                                   "x − c, is within this of c", unit="px", low=0.0, high=1000.0)
 
 
 def sample_right_map(disparity: np.ndarray, right_map: np.ndarray) -> np.ndarray:
@@ -54,6 +61,19 @@ def fuse_with_mirrored(disparity: np.ndarray, right_map: np.ndarray, tolerance: 
                             np.ascontiguousarray(right_map, dtype=np.float32), tolerance)
 
 
+def reassign_contradicted(disparity: np.ndarray, right_map: np.ndarray, above: float, radius: int,
+                          within: float) -> np.ndarray:
+    """(H, W) float32: each pixel whose disparity ``d`` the right-referenced ``right_map``, read at
+    ``x − d`` (:func:`sample_right_map`), contradicts by more than ``above`` px takes the
+    disparity ``c`` of a neighbour up to ``radius`` px away along its row or column for which
+    ``right_map`` read at ``x − c`` is within ``within`` px of ``c`` (the best confirmed; the
+    nearest on a tie, along the row first, the right or lower side first); every other pixel
+    keeps its value. All pixels decide on the input map. One compiled pass over the rows
+    (:func:`~stereocli.match.kernels.maps.reassign_contradicted`)."""
+    return km.reassign_contradicted(np.ascontiguousarray(disparity, dtype=np.float32),
+                                    np.ascontiguousarray(right_map, dtype=np.float32), above, radius, within)
+
+
 @register("refinement", "mirror_fusion", MirrorFusionParams, traits=StageTraits(needs_mirrored=True))
 def mirror_fusion(state: MatchState, p: MirrorFusionParams) -> None:
     """Average the map with the same pipeline's map of the mirrored pair where they agree.
@@ -67,7 +87,19 @@ def mirror_fusion(state: MatchState, p: MirrorFusionParams) -> None:
     shrinks. Elsewhere (occlusions, the two maps disagreeing) the pixel keeps its value. The
     mirrored run costs as much as the stages before this one; place it on a dense map, e.g.
     before ``slanted_patchmatch``.
+
+    With ``reassign_above`` > 0, a pixel that the mirrored map then contradicts by more than that
+    (a gross error in one of the two maps) takes the disparity of a neighbour within
+    ``reassign_radius`` px along its row or column that the mirrored map confirms within
+    ``reassign_within`` px, the best confirmed one. The two maps' gross errors lie largely in
+    different places, so where a pixel's own disparity is contradicted and its neighbour's is
+    confirmed, the neighbour's is the likelier one; where no neighbour's is confirmed (e.g. in
+    an occlusion, which has no match to confirm anything) the pixel keeps its value.
     """
     if state.mirrored_disparity is None:
         raise RuntimeError("mirror_fusion: the pipeline did not provide the mirrored pair's map")
-    state.disparity = fuse_with_mirrored(state.disparity, state.mirrored_disparity, float(p.tolerance))
+    fused = fuse_with_mirrored(state.disparity, state.mirrored_disparity, float(p.tolerance))
+    if p.reassign_above > 0:
+        fused = reassign_contradicted(fused, state.mirrored_disparity, float(p.reassign_above),
+                                      int(p.reassign_radius), float(p.reassign_within))
+    state.disparity = fused

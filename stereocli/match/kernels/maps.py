@@ -1,4 +1,4 @@
-"""Compiled kernels over (H, W) disparity maps: consistency check, filling, median, 1-px bins."""
+"""Compiled kernels over (H, W) disparity maps: consistency checks, fusion, filling, median, 1-px bins."""
 
 from __future__ import annotations
 
@@ -46,6 +46,34 @@ def lr_check_onto(disp_left: np.ndarray, disp_right: np.ndarray, max_diff: float
     return out
 
 
+@njit(cache=True, inline="always")
+def _read_right_map(right_map, y: int, x: int, d):
+    """``right_map`` read where left pixel (``y``, ``x``) lands at disparity ``d`` (finite):
+    column ``x − d`` of row ``y``, linearly interpolated between the two nearest columns; +inf
+    where ``x − d`` falls outside ``[0, W − 1]`` or a column read at a weight above 0 is
+    invalid."""
+    w = right_map.shape[1]
+    x_right = np.float32(x) - d
+    if x_right < 0 or x_right > w - 1:
+        return INF
+    if w < 2:
+        return right_map[y, x]
+    # The two columns around x − d; at x − d = W − 1 exactly, (W − 2, W − 1) at weight 1.
+    column = min(int(np.floor(x_right)), w - 2)
+    weight = x_right - np.float32(column)
+    before, after = right_map[y, column], right_map[y, column + 1]
+    # A column read at weight 0 may be invalid.
+    if not np.isfinite(before):
+        if weight != 1:
+            return INF
+        before = np.float32(0)
+    if not np.isfinite(after):
+        if weight != 0:
+            return INF
+        after = np.float32(0)
+    return before + weight * (after - before)
+
+
 @chunk_kernel
 def _fuse_mirrored_rows(disp, right_map, tolerance: float, out, y0: int, y1: int) -> None:
     """:func:`fuse_mirrored` on rows ``y0`` to ``y1`` (exclusive) of ``out``."""
@@ -58,28 +86,7 @@ def _fuse_mirrored_rows(disp, right_map, tolerance: float, out, y0: int, y1: int
             out[y, x] = d
             if not np.isfinite(d):
                 continue
-            x_right = np.float32(x) - d
-            if x_right < 0 or x_right > w - 1:
-                continue
-            if w < 2:
-                sampled = right_map[y, x]
-                if not np.isfinite(sampled):
-                    continue
-            else:
-                # The two columns around x − d; at x − d = W − 1 exactly, (W − 2, W − 1) at weight 1.
-                column = min(int(np.floor(x_right)), w - 2)
-                weight = x_right - np.float32(column)
-                before, after = right_map[y, column], right_map[y, column + 1]
-                # A column read at weight 0 may be invalid.
-                if not np.isfinite(before):
-                    if weight != 1:
-                        continue
-                    before = np.float32(0)
-                if not np.isfinite(after):
-                    if weight != 0:
-                        continue
-                    after = np.float32(0)
-                sampled = before + weight * (after - before)
+            sampled = _read_right_map(right_map, y, x, d)
             if abs(sampled - d) < tol:
                 out[y, x] = half * (d + sampled)
 
@@ -93,6 +100,53 @@ def fuse_mirrored(disp: np.ndarray, right_map: np.ndarray, tolerance: float) -> 
     right image."""
     out = np.empty_like(disp)
     for_rows(_fuse_mirrored_rows, disp.shape[0], disp, right_map, float(tolerance), out)
+    return out
+
+
+@chunk_kernel
+def _reassign_contradicted_rows(disp, right_map, above: float, radius: int, within: float, out,
+                                y0: int, y1: int) -> None:
+    """:func:`reassign_contradicted` on rows ``y0`` to ``y1`` (exclusive) of ``out``."""
+    h, w = disp.shape
+    above32, within32 = np.float32(above), np.float32(within)  # float32 comparisons, as numpy's
+    for y in range(y0, y1):
+        for x in range(w):
+            d = disp[y, x]
+            out[y, x] = d
+            if not np.isfinite(d):
+                continue
+            sampled = _read_right_map(right_map, y, x, d)
+            if not np.isfinite(sampled) or abs(sampled - d) <= above32:
+                continue
+            best = INF
+            # Candidates in a fixed order (row before column, nearer before farther, the
+            # following side first); a later one must be strictly better to replace one.
+            for along_column in range(2):
+                for step in range(1, radius + 1):
+                    for side in range(2):
+                        offset = step if side == 0 else -step
+                        yy, xx = (y + offset, x) if along_column else (y, x + offset)
+                        if yy < 0 or yy >= h or xx < 0 or xx >= w:
+                            continue
+                        candidate = disp[yy, xx]
+                        if not np.isfinite(candidate):
+                            continue
+                        error = abs(_read_right_map(right_map, y, x, candidate) - candidate)
+                        if error <= within32 and error < best:
+                            best = error
+                            out[y, x] = candidate
+
+
+def reassign_contradicted(disp: np.ndarray, right_map: np.ndarray, above: float, radius: int,
+                          within: float) -> np.ndarray:
+    """(H, W) float32: ``disp`` where ``right_map`` read at ``x − d`` (as in
+    :func:`fuse_mirrored`) contradicts it by ``above`` px or less, or cannot be read; elsewhere
+    the disparity ``c`` of the neighbour, up to ``radius`` px away along the row or the column,
+    that ``right_map`` read at ``x − c`` confirms best, if within ``within`` px (else ``d``).
+    Every pixel decides on the input map, so the result does not depend on the order of rows."""
+    out = np.empty_like(disp)
+    for_rows(_reassign_contradicted_rows, disp.shape[0], disp, right_map, float(above), int(radius),
+             float(within), out)
     return out
 
 
