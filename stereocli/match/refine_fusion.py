@@ -76,7 +76,7 @@ def reassign_contradicted(disparity: np.ndarray, right_map: np.ndarray, above: f
 
 @register("refinement", "mirror_fusion", MirrorFusionParams, traits=StageTraits(needs_mirrored=True))
 def mirror_fusion(state: MatchState, p: MirrorFusionParams) -> None:
-    """Average the map with the same pipeline's map of the mirrored pair where they agree.
+    """Average the map with the mirrored pair's map where they agree; optionally reassign what it contradicts.
 
     The pipeline first runs every stage before this one on the mirrored pair (both images
     flipped left-right and swapped, so the right view is matched as a left view) and flips the
@@ -85,8 +85,8 @@ def mirror_fusion(state: MatchState, p: MirrorFusionParams) -> None:
     linear interpolation) and, where the two differ by less than ``tolerance`` px, takes their
     mean: two largely independent estimates of the same surface point, so the sub-pixel error
     shrinks. Elsewhere (occlusions, the two maps disagreeing) the pixel keeps its value. The
-    mirrored run costs as much as the stages before this one; place it on a dense map, e.g.
-    before ``slanted_patchmatch``.
+    mirrored run costs as much as the stages before this one; place it on a dense map (after
+    the fill), before the stages that only polish the map, which then need not run twice.
 
     With ``reassign_above`` > 0, a pixel that the mirrored map then contradicts by more than that
     (a gross error in one of the two maps) takes the disparity of a neighbour within

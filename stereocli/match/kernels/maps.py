@@ -119,8 +119,8 @@ def _reassign_contradicted_rows(disp, right_map, above: float, radius: int, with
             if not np.isfinite(sampled) or abs(sampled - d) <= above32:
                 continue
             best = INF
-            # Candidates in a fixed order (row before column, nearer before farther, the
-            # following side first); a later one must be strictly better to replace one.
+            # Candidates in a fixed order (row before column, nearer before farther, the right
+            # or lower side first); a later one must be strictly better to replace one.
             for along_column in range(2):
                 for step in range(1, radius + 1):
                     for side in range(2):
