@@ -215,12 +215,13 @@ def _sweep_rows(pa, pb, pc, cost, changed, only_changed: bool, parity: int, seed
                 if only_changed and not changed[yy, xx]:
                     continue
                 a, b, c = pa[yy, xx], pb[yy, xx], pc[yy, xx]
-                if not np.isfinite(c) or (a == ba and b == bb and c == bc):
+                if not np.isfinite(c):
                     continue
                 d = a * x + b * y + c
                 if d < lo or d > hi or abs(d - d0) > band:
                     continue
-                # The largest difference between the two planes over the window (at a corner).
+                # The largest difference between the two planes over the window (at a corner);
+                # an identical plane (0) is skipped at any same_plane.
                 if abs(d - (ba * x + bb * y + bc)) + radius * (abs(a - ba) + abs(b - bb)) <= same_plane:
                     continue
                 cc = plane_cost(y, x, a, b, c, codes_left, codes_right, guide, weights, prior, up, radius, stride,
