@@ -334,7 +334,6 @@ def test_weighted_census_keeps_the_background_beside_an_object(seed):
 
 def test_weighted_census_coarse_level_takes_plain_distances(monkeypatch):
     # A coarse-to-fine SGM's coarse level only bounds the search: it runs without the weights.
-    from stereocli.match.config import build_config
     from stereocli.match.kernels import census as kc
     from stereocli.match.pipeline import match_pair
 
