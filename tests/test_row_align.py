@@ -141,7 +141,7 @@ def test_the_match_record_holds_the_fit(run_cli, tmp_path):
     params = json.loads((out / "planes" / "params.json").read_text())
     note = params["stage_notes"]["row_align"]
     assert set(note) >= {"applied", "offset_px", "tilt_x_px", "tilt_y_px", "tracks"}
-    assert params["config"]["preprocess"][0]["name"] == "row_align"
+    assert [stage["name"] for stage in params["config"]["preprocess"]] == ["column_pattern", "row_align"]
     # -v prints each pair's fit on one line.
     r = run_cli("match", tmp_path / "scenes" / "planes", "-o", tmp_path / "verbose", "-v")
     assert r.code == 0 and any(line.startswith("planes: row_align: tracks_found ") for line in r.err.splitlines())
@@ -319,7 +319,8 @@ def test_the_mirrored_pair_is_given_the_pairs_plane(monkeypatch):
     assert note["applied"] is True
     assert abs(note["offset_px"] - 0.6) < 0.1 and abs(note["tilt_x_px"] - 0.8) < 0.15
     assert abs(note["tilt_y_px"] + 0.6) < 0.15
-    given = preprocess._mirrored_row_align(config.preprocess[0].params, note)
+    row_align = next(c for c in config.preprocess if c.stage.name == "row_align")
+    given = preprocess._mirrored_row_align(row_align.params, note)
     assert given.measure is False
     mirrored = prepare(np.ascontiguousarray(right[:, ::-1]), np.ascontiguousarray(scene["left"][:, ::-1]), config,
                        ndisp=48).state.notes["row_align"]
@@ -332,5 +333,5 @@ def test_the_mirrored_pair_is_given_the_pairs_plane(monkeypatch):
     result = match_pair(scene["left"], right, config, ndisp=48)
     assert len(calls) == 1 and result.notes["row_align"]["applied"] is True
     # A pair row_align leaves as it is stays as it is mirrored.
-    unchanged = preprocess._mirrored_row_align(config.preprocess[0].params, {"applied": False})
+    unchanged = preprocess._mirrored_row_align(row_align.params, {"applied": False})
     assert unchanged.measure is False and (unchanged.offset, unchanged.tilt_x, unchanged.tilt_y) == (0, 0, 0)

@@ -14,7 +14,7 @@ from .. import registry
 #: module -> {kind: stage names it registers}
 CATALOGUE: dict[str, dict[str, tuple[str, ...]]] = {
     "stereocli.match.preprocess": {"preprocess": ("none", "log", "mean_removal", "bilateral_subtraction", "xsobel",
-                                                  "histogram_matching", "row_align")},
+                                                  "histogram_matching", "column_pattern", "row_align")},
     "stereocli.match.cost": {"cost": ("ad", "tad", "sd", "sad", "stad", "ssd", "ncc", "zncc", "gradient",
                                       "color_gradient", "bt", "census", "rank", "ad_census", "ordinal")},
     "stereocli.match.cost_mi": {"cost": ("hmi",)},
