@@ -55,7 +55,7 @@ def test_amplitude_of_a_pure_pattern_is_exact():
 def test_a_brightness_ramp_across_the_columns_is_not_a_pattern():
     ramp = np.tile(np.linspace(40, 200, W, dtype=np.float32), (H, 1))
     # the four row neighbours' mean equals the pixel on a ramp (away from the two border columns)
-    assert np.abs(column_pattern_amplitude(ramp, window=0)).max() < 0.1
+    assert np.abs(column_pattern_amplitude(ramp, window=1)[2:-2]).max() < 1e-4
     np.testing.assert_allclose(column_pattern_amplitude(ramp + 0.5 * _parity(), window=8)[8:-8], 0.5, atol=1e-3)
 
 
@@ -77,8 +77,9 @@ def test_stage_corrects_each_view_and_channel_and_records_the_amplitudes():
     right_clean = _texture(std=3.0, seed=1)
     right = right_clean + 0.5 * _parity()
     state = _apply(left, right)
-    np.testing.assert_allclose(state.left, clean, atol=0.06)
-    np.testing.assert_allclose(state.right, right_clean, atol=0.06)
+    inner = (slice(None), slice(16, -16))  # the amplitude's moving average is one-sided near the borders
+    np.testing.assert_allclose(state.left[inner], clean[inner], atol=0.1)
+    np.testing.assert_allclose(state.right[inner], right_clean[inner], atol=0.1)
     assert state.left.dtype == np.float32 and state.right.dtype == np.float32
     note = state.notes["column_pattern"]
     assert note["left_applied"] and note["right_applied"]
@@ -104,12 +105,12 @@ def test_views_without_the_pattern_are_left_untouched():
 
 
 def test_a_small_strongly_textured_view_is_not_mistaken_for_a_pattern():
-    # 64 rows of strong texture leave the column means about 0.4 grey levels apart by chance:
-    # above min_amplitude, but not significant.
+    # 64 rows of strong texture leave the column means a few tenths of a grey level apart by
+    # chance: above a lowered min_amplitude, but not significant.
     busy = _texture(std=25.0, height=64, seed=3)
     found = measure_column_pattern(busy, row_step=4)
-    assert found.level >= 0.2 and found.level < found.noise
-    state = _apply(busy, busy)
+    assert found.level >= 0.1 and found.level < found.noise
+    state = _apply(busy, busy, {"min_amplitude": 0.1})
     assert state.left is busy and not state.notes["column_pattern"]["left_applied"]
     # a pattern of 1.5 grey levels on a view of less texture is 4 standard errors: corrected
     textured = _texture(std=10.0, height=64, seed=0) + 1.5 * _parity()
@@ -177,7 +178,7 @@ def test_the_tsukuba_camera_has_the_pattern_and_middeval3_cameras_do_not(shared_
     def level(path):
         return float(np.median(np.abs(column_pattern_amplitude(luma(read_image(path).astype(np.float32))))))
 
-    # Measured: Tsukuba 0.65 / 0.68 grey levels; every MiddEval3-Q view 0.006-0.030.
+    # Measured: Tsukuba 0.67 / 0.70 grey levels; every MiddEval3-Q view at most 0.031.
     tsukuba = shared_data / "middlebury2001" / "tsukuba"
     assert min(level(tsukuba / "im3.png"), level(tsukuba / "im4.png")) > 0.5
     for scene in ("Adirondack", "Pipes", "Vintage"):
@@ -187,7 +188,7 @@ def test_the_tsukuba_camera_has_the_pattern_and_middeval3_cameras_do_not(shared_
 
 @pytest.mark.parametrize("preset, at_least", [("default", 0.4), ("accurate", 0.2)])
 def test_removing_the_pattern_improves_tsukuba(shared_data, preset, at_least):
-    # Measured (nonocc bad > 1 %): default 3.84 -> 3.16, accurate 3.12 -> 2.77.
+    # Measured (nonocc bad > 1 %): default 3.84 -> 3.12, accurate 3.12 -> 2.66.
     without = _tsukuba_bad1(shared_data, preset, ("preprocess.column_pattern.min_amplitude=50",))
     with_it = _tsukuba_bad1(shared_data, preset)
     assert with_it <= without - at_least, (without, with_it)
