@@ -83,7 +83,7 @@ def test_stage_corrects_each_view_and_channel_and_records_the_amplitudes():
     assert state.left.dtype == np.float32 and state.right.dtype == np.float32
     note = state.notes["column_pattern"]
     assert note["left_applied"] and note["right_applied"]
-    assert note["right_amplitude"] == pytest.approx(0.5, abs=0.02)
+    assert note["right_amplitude"] == pytest.approx(0.5, abs=0.05)  # measured on every eighth row
     # the left view's level is measured on its grey (luma): between the channels' amplitudes
     assert 0.5 < note["left_amplitude"] < 0.7
 
@@ -188,7 +188,7 @@ def test_the_tsukuba_camera_has_the_pattern_and_middeval3_cameras_do_not(shared_
 
 @pytest.mark.parametrize("preset, at_least", [("default", 0.4), ("accurate", 0.2)])
 def test_removing_the_pattern_improves_tsukuba(shared_data, preset, at_least):
-    # Measured (nonocc bad > 1 %): default 3.84 -> 3.12, accurate 3.12 -> 2.66.
+    # Measured (nonocc bad > 1 %): default 3.84 -> 3.07, accurate 3.12 -> 2.73.
     without = _tsukuba_bad1(shared_data, preset, ("preprocess.column_pattern.min_amplitude=50",))
     with_it = _tsukuba_bad1(shared_data, preset)
     assert with_it <= without - at_least, (without, with_it)
