@@ -273,7 +273,7 @@ def remove_column_pattern(image: np.ndarray, amplitude: np.ndarray) -> np.ndarra
 
 @dataclass(frozen=True)
 class ColumnPatternParams:
-    min_amplitude: float = param(0.2, "a view whose median amplitude is below this is left as it is (photographs without the pattern measure 0.01–0.04)", unit="grey levels", low=0.0, high=50.0)
+    min_amplitude: float = param(0.2, "a view whose median amplitude is below this is left as it is (photographs without the pattern measure 0.01–0.07)", unit="grey levels", low=0.0, high=50.0)
     min_significance: float = param(3.0, "...and one whose amplitude is below this many times its own standard error (the scene's detail left in the column means: small or strongly textured views)", low=0.0, high=1000.0)
     window: int = param(32, "columns over which the amplitude is averaged (it drifts slowly across a sensor); 0: one amplitude for the whole image", unit="px", low=0, high=100000)
     clip: float = param(2.0, "the column estimate's clip: differences from its row neighbours beyond this count as this far, so that edges and strong texture do not sway it", unit="grey levels", low=0.1, high=255.0)
