@@ -67,11 +67,11 @@ def test_config_errors_name_file_and_key(tmp_path, content, expected):
 
 
 def test_set_names_a_stage_listed_twice_by_its_index():
-    # quality votes along rows (refinement 7), then along columns (8), in two geodesic_vote stages.
-    with pytest.raises(ConfigError, match=r"refinement has 2 'geodesic_vote' stages \(at 7, 8\); address one by its "
-                                          r"index, e.g. refinement.7.gamma_s"):
+    # quality votes along rows (refinement 8), then along columns (9), in two geodesic_vote stages.
+    with pytest.raises(ConfigError, match=r"refinement has 2 'geodesic_vote' stages \(at 8, 9\); address one by its "
+                                          r"index, e.g. refinement.8.gamma_s"):
         build_config(["quality"], ["refinement.geodesic_vote.gamma_s=50"])
-    cfg = build_config(["quality"], ["refinement.8.gamma_s=50"])
+    cfg = build_config(["quality"], ["refinement.9.gamma_s=50"])
     rows, columns = [c.params for c in cfg.refinement if c.stage.name == "geodesic_vote"]
     assert (rows.lines, rows.gamma_s, columns.lines, columns.gamma_s) == ("rows", 25.0, "columns", 50.0)
 

@@ -35,6 +35,7 @@ CATALOGUE: dict[str, dict[str, tuple[str, ...]]] = {
     "stereocli.match.refine_voting": {"refinement": ("region_voting", "proper_interpolation")},
     "stereocli.match.refine_slanted": {"refinement": ("slanted_patchmatch",)},
     "stereocli.match.refine_fusion": {"refinement": ("mirror_fusion",)},
+    "stereocli.match.refine_photo": {"refinement": ("photo_consistency",)},
 }
 
 for _module, _kinds in CATALOGUE.items():

@@ -1,0 +1,269 @@
+"""``photo_consistency``: pixels whose colour disagrees with the right pixel they match re-decide
+among their neighbours' disparities. On synthetic pairs with exact ground truth, a thin
+structure that took the background's disparity and a fattened rim are restored exactly, a
+correct map is left alone, and the compiled pass equals a numpy definition; on the real Tsukuba
+pair, ``quality`` gains its lamp arms back and meets the Middlebury v2 targets."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from stereocli import registry
+from stereocli.match.kernels import photo as kp
+from stereocli.match.state import MatchState
+from test_kernels_sgm import on_one_and_two_threads
+
+INF = np.float32(np.inf)
+H, W = 40, 80
+BACKGROUND, OBJECT = 2, 8  # px
+
+
+def _texture(height: int, width: int, seed: int) -> np.ndarray:
+    """(H, W, 3) float32 random colours in [60, 250): every pixel differs from its neighbours."""
+    return np.random.default_rng(seed).uniform(60, 250, (height, width, 3)).astype(np.float32)
+
+
+def _pair(object_mask: np.ndarray, object_colour: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A fronto-parallel background at 2 px and an object (``object_mask`` of the left view,
+    ``object_colour`` (H, W, 3) its colours) at 8 px: the left view, the right view and the
+    left-referenced ground truth (float32 px)."""
+    canvas = _texture(H, W + BACKGROUND, seed=1)  # the background, seen at x + 2 from the right view
+    left = canvas[:, :W].copy()
+    right = canvas[:, BACKGROUND:BACKGROUND + W].copy()
+    left[object_mask] = object_colour[object_mask]
+    ys, xs = np.nonzero(object_mask)
+    right[ys, xs - OBJECT] = object_colour[ys, xs]
+    truth = np.where(object_mask, OBJECT, BACKGROUND).astype(np.float32)
+    return left, right, truth
+
+
+def _occluded(object_mask: np.ndarray) -> np.ndarray:
+    """The background pixels of the left view whose match the object hides in the right view."""
+    covered = np.zeros_like(object_mask)
+    ys, xs = np.nonzero(object_mask)
+    covered[ys, xs - OBJECT] = True  # right-view pixels showing the object
+    rows, cols = np.nonzero(~object_mask)
+    occluded = np.zeros_like(object_mask)
+    inside = cols - BACKGROUND >= 0
+    occluded[rows[inside], cols[inside]] = covered[rows[inside], cols[inside] - BACKGROUND]
+    return occluded
+
+
+def _run(left, right, disparity, **values) -> tuple[np.ndarray, dict]:
+    stage = registry.get("refinement", "photo_consistency")
+    state = MatchState(left, right, 0, 16)
+    state.disparity = disparity.copy()
+    stage.func(state, stage.make_params(values))
+    return state.disparity, state.notes.get("photo_consistency", {})
+
+
+def _thin_post() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A 3-px wide vertical post (rows 5-34, columns 40-42) of one dark colour in front of the
+    background; returns the pair, the ground truth and the post's mask."""
+    post = np.zeros((H, W), bool)
+    post[5:35, 40:43] = True
+    left, right, truth = _pair(post, np.full((H, W, 3), 30.0, np.float32))
+    return left, right, truth, post
+
+
+def test_a_thin_structure_that_took_the_background_gets_its_disparity_back():
+    left, right, truth, post = _thin_post()
+    # The map lost the post's middle (rows 10-27) to the background: there the post's pixels map
+    # onto the background of the right view, 6 px off the post.
+    lost = post.copy()
+    lost[:10] = lost[28:] = False
+    disparity = np.where(lost, BACKGROUND, truth).astype(np.float32)
+    fixed, notes = _run(left, right, disparity)
+    compare = ~_occluded(post)
+    np.testing.assert_array_equal(fixed[compare], truth[compare])
+    assert round(notes["changed"] * H * W) == lost.sum()  # 54 pixels, and nothing else
+    # Rows 9 and 28 stand out too (their 3x3 mean takes in the lost rows), so the first pass takes
+    # candidates from rows 8 and 29, up to 8 px away: it restores rows 10-16 and 21-27. Each
+    # further pass re-decides next to what the last one changed, one row further.
+    for iterations, still_lost in ((1, [17, 18, 19, 20]), (2, [18, 19])):
+        partly, _ = _run(left, right, disparity, iterations=iterations)
+        for column in (40, 41, 42):
+            np.testing.assert_array_equal(np.nonzero(partly[:, column] != truth[:, column])[0], still_lost)
+
+
+def test_a_fattened_rim_returns_to_the_background():
+    square = np.zeros((H, W), bool)
+    square[10:30, 30:50] = True
+    left, right, truth = _pair(square, _texture(H, W, seed=2))
+    # The square's disparity spills 2 px over its right edge (foreground fattening).
+    fattened = truth.copy()
+    fattened[10:30, 50:52] = OBJECT
+    fixed, _ = _run(left, right, fattened)
+    compare = ~_occluded(square)
+    np.testing.assert_array_equal(fixed[compare], truth[compare])
+
+
+def test_the_margin_decides_how_much_better_a_candidate_must_match():
+    left, right, truth, post = _thin_post()
+    disparity = np.where(post, BACKGROUND, truth).astype(np.float32)
+    # Costs are colour differences capped at 20 grey levels: nothing can beat anything by 20.
+    unchanged, notes = _run(left, right, disparity, margin=20.0)
+    np.testing.assert_array_equal(unchanged, disparity)
+    assert notes["changed"] == 0 and notes["flagged"] > 0
+
+
+def test_a_correct_map_and_invalid_pixels_are_left_alone():
+    left, right, truth, post = _thin_post()
+    disparity = truth.copy()
+    occluded = _occluded(post)
+    disparity[occluded] = INF  # as after an LR check: invalid pixels are neither flagged nor candidates
+    fixed, notes = _run(left, right, disparity)
+    np.testing.assert_array_equal(fixed, disparity)
+    assert notes["flagged"] == 0
+    # A plain textured plane matched exactly: no residual, nothing flagged.
+    plane = np.zeros((H, W), bool)
+    left, right, truth = _pair(plane, np.zeros((H, W, 3), np.float32))
+    fixed, notes = _run(left, right, truth)
+    np.testing.assert_array_equal(fixed, truth)
+    assert notes == {"threshold": 10.0, "flagged": 0.0, "changed": 0.0}
+
+
+def _redecide_reference(left, right, disp, flagged, radius, step, gamma_c, gamma_s, truncation, reach, margin):
+    """One pass of :func:`~stereocli.match.kernels.photo.redecide_flagged`, in numpy, from its docstring."""
+    h, w = disp.shape
+    offsets = np.arange(-(radius // step) * step, radius + 1, step)
+    spatial = np.exp(-np.hypot(offsets[:, None], offsets[None, :]) / gamma_s).astype(np.float32)
+    similarity = np.exp(-np.arange(256) / gamma_c).astype(np.float32)
+
+    def shift(d):
+        return int(np.floor(d + 0.5))
+
+    def difference(y, x, d):  # largest channel difference from right pixel x - round(d), clamped
+        return np.abs(left[y, x] - right[y, min(max(x - shift(d), 0), w - 1)]).max()
+
+    out = disp.copy()
+    for y, x in zip(*np.nonzero(flagged)):
+        own = disp[y, x]
+        candidates = []
+        for dy, dx in ((0, 1), (0, -1), (1, 0), (-1, 0), (1, 1), (1, -1), (-1, 1), (-1, -1)):
+            for k in range(1, reach + 1):
+                yy, xx = y + k * dy, x + k * dx
+                if not (0 <= yy < h and 0 <= xx < w):
+                    break
+                if flagged[yy, xx] or not np.isfinite(disp[yy, xx]):
+                    continue
+                c = disp[yy, xx]
+                if (shift(c) != shift(own) and all(shift(c) != shift(o) for o in candidates)
+                        and difference(y, x, c) < difference(y, x, own)):
+                    candidates.append(c)
+                break
+        if not candidates:
+            continue
+        weights = np.zeros((len(offsets), len(offsets)))
+        for a, oy in enumerate(offsets):
+            for b, ox in enumerate(offsets):
+                if 0 <= y + oy < h and 0 <= x + ox < w:
+                    largest = np.abs(left[y + oy, x + ox] - left[y, x]).max()
+                    weight = spatial[a, b] * similarity[min(int(largest), 255)]
+                    weights[a, b] = weight if weight >= 1e-3 else 0.0
+
+        def cost(d):
+            total = 0.0
+            for a, oy in enumerate(offsets):
+                for b, ox in enumerate(offsets):
+                    if weights[a, b] > 0:
+                        x_right = min(max(x + ox - shift(d), 0), w - 1)
+                        diff = np.abs(left[y + oy, x + ox] - right[y + oy, x_right]).max()
+                        total += weights[a, b] * min(diff, truncation)
+            return total / weights.sum()
+
+        costs = [cost(c) for c in candidates]
+        best = int(np.argmin(costs))  # the first on a tie
+        if costs[best] < cost(own) - margin:
+            out[y, x] = candidates[best]
+    return out
+
+
+def test_the_compiled_pass_equals_its_numpy_definition():
+    rng = np.random.default_rng(5)
+    h, w = 14, 22
+    changed_pixels = 0
+    for seed in range(3):
+        rng = np.random.default_rng(seed)
+        base = rng.uniform(0, 255, (h, w + 6, 3)).astype(np.float32)
+        left = np.ascontiguousarray(base[:, :w])
+        right = np.ascontiguousarray(base[:, 3:w + 3] + rng.normal(0, 3, (h, w, 3)).astype(np.float32))
+        disp = rng.choice(np.float32([1.0, 2.5, 3.0, 3.2, 6.0]), (h, w)).astype(np.float32)
+        disp[rng.random((h, w)) < 0.1] = INF
+        flagged = (rng.random((h, w)) < 0.4) & np.isfinite(disp)
+        active = np.ones((h, w), bool)
+        params = dict(radius=3, step=1, gamma_c=20.0, gamma_s=4.0, truncation=60.0, reach=5, margin=1.0)
+        expected = _redecide_reference(left, right, disp, flagged, **params)
+        results = on_one_and_two_threads(lambda: kp.redecide_flagged(
+            left, right, disp, flagged, active, params["radius"], params["step"], params["gamma_c"],
+            params["gamma_s"], params["truncation"], params["reach"], params["margin"]))
+        for out, changed in results:
+            np.testing.assert_array_equal(out, expected)
+            np.testing.assert_array_equal(changed, out != disp)
+        changed_pixels += int((expected != disp).sum())
+    assert changed_pixels > 20  # the comparison covers real decisions
+
+
+def test_the_residual_and_its_3x3_mean():
+    left = np.arange(2 * 5 * 3, dtype=np.float32).reshape(2, 5, 3)
+    right = np.zeros((2, 5, 3), np.float32)
+    disp = np.array([[0.0, 1.0, 1.4, 1.6, INF], [9.0, 0.0, 0.0, 0.0, -3.0]], np.float32)
+    residual = kp.colour_residual(left, right, disp)
+    # The largest channel difference, against a black right view: the blue channel where
+    # x - round(d) lies in the image; 0 where d is invalid (x = 4) or it does not (x = 0 and 4
+    # of the second row, d = 9 and -3).
+    inside = np.array([[True, True, True, True, False], [False, True, True, True, False]])
+    np.testing.assert_array_equal(residual, np.where(inside, left[..., 2], 0))
+    # x = 2, d = 1.4 reads column 1; x = 3, d = 1.6 reads column 1 too.
+    right[0, 1] = left[0, 2]
+    np.testing.assert_array_equal(kp.colour_residual(left, right, disp)[0, 2:4], [0, 3])
+    box = np.array([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]], np.float32)
+    # Each pixel's mean over its 3x3 window clipped at the borders.
+    np.testing.assert_allclose(kp.mean3(box), [[3.0, 3.5, 4.0], [3.0, 3.5, 4.0]])
+
+
+def test_unknown_parameters_are_config_errors():
+    from stereocli.errors import ConfigError
+    from stereocli.match.config import build_config
+
+    with pytest.raises(ConfigError, match="photo_consistency"):
+        build_config(["quality"], ["refinement.photo_consistency.marginn=2"])
+    with pytest.raises(ConfigError, match="photo_consistency"):
+        build_config(["quality"], ["refinement.photo_consistency.step=0"])
+
+
+# --- real data -------------------------------------------------------------------------------
+
+
+def _v2_bad1(shared_data, scene: str, sets: tuple[str, ...] = ()) -> float:
+    """Middlebury v2 nonocc bad > 1 px (%) of ``quality`` (with ``--set`` assignments ``sets``)."""
+    from stereocli.evaluate.api import EvalOptions, evaluate_pair
+    from stereocli.evaluate.datasets import load_scene
+    from stereocli.io.images import read_image
+    from stereocli.match.config import build_config
+    from stereocli.match.pipeline import match_pair
+
+    folder, left, right, ndisp = {"tsukuba": ("middlebury2001/tsukuba", "im3", "im4", 16),
+                                  "venus": ("middlebury2001/venus", "im2", "im6", 32),
+                                  "teddy": ("middlebury2003/teddy", "im2", "im6", 64),
+                                  "cones": ("middlebury2003/cones", "im2", "im6", 64)}[scene]
+    folder = shared_data / folder
+    disparity = match_pair(read_image(folder / f"{left}.png"), read_image(folder / f"{right}.png"),
+                           build_config(["quality"], list(sets)), ndisp=ndisp).disparity
+    result = evaluate_pair(disparity, load_scene(folder), options=EvalOptions(ndisp=ndisp))
+    return result.metrics["nonocc"]["bad1.0"]
+
+
+def test_quality_gets_the_tsukuba_lamp_arms_back(shared_data):
+    # Measured: 2.02 -> 1.47 % (the lamp's thin arms, given the background by SGM, 0.65 -> 0.31).
+    without = _v2_bad1(shared_data, "tsukuba", ("refinement.photo_consistency.margin=20",))
+    with_it = _v2_bad1(shared_data, "tsukuba")
+    assert with_it <= without - 0.4, (without, with_it)
+
+
+def test_quality_meets_the_middlebury_v2_targets(shared_data):
+    # Targets 1.5 / 0.3 / 4.5 / 2.2 % nonocc bad > 1; measured 1.47 / 0.22 / 3.55 / 2.06.
+    targets = {"tsukuba": 1.5, "venus": 0.3, "teddy": 4.5, "cones": 2.2}
+    scores = {scene: _v2_bad1(shared_data, scene) for scene in targets}
+    assert all(scores[scene] <= target for scene, target in targets.items()), scores
