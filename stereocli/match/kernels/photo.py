@@ -75,15 +75,16 @@ def _mean3_rows(residual, out, y0: int, y1: int) -> None:
                 column_sums[x] += residual[yy, x]
         rows = np.float32(bottom - top + 1)
         for x in range(w):
-            left, right = max(x - 1, 0), min(x + 1, w - 1)
-            total = column_sums[left] + column_sums[right] + (column_sums[x] if right - left == 2 else 0)
-            out[y, x] = total / (rows * (right - left + 1))
+            first, last = max(x - 1, 0), min(x + 1, w - 1)
+            total = column_sums[first] + column_sums[last] + (column_sums[x] if last - first == 2 else 0)
+            out[y, x] = total / (rows * (last - first + 1))
 
 
 def colour_residual(left: np.ndarray, right: np.ndarray, disp: np.ndarray) -> np.ndarray:
     """(H, W) float32: each left pixel's largest channel difference (grey levels) from the right
     pixel its disparity maps it onto, column ``x − round(d)``; 0 where ``disp`` is invalid or
-    that column lies outside the image. ``left``/``right`` (H, W, C) float32, ``disp`` (H, W) float32 px."""
+    that column lies outside the image. ``left``/``right`` (H, W, C) float32, ``disp`` (H, W)
+    float32 px."""
     out = np.empty(disp.shape, np.float32)
     for_rows(_residual_rows, disp.shape[0], left, right, disp, out)
     return out
