@@ -221,6 +221,8 @@ def test_the_residual_and_its_3x3_mean():
     box = np.array([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]], np.float32)
     # Each pixel's mean over its 3x3 window clipped at the borders.
     np.testing.assert_allclose(kp.mean3(box), [[3.0, 3.5, 4.0], [3.0, 3.5, 4.0]])
+    np.testing.assert_allclose(kp.mean3(box[:, :1].copy()), [[2.5], [2.5]])  # one column
+    np.testing.assert_allclose(kp.mean3(box[:1].copy()), [[1.5, 2.0, 2.5]])  # one row
 
 
 def test_unknown_parameters_are_config_errors():

@@ -76,7 +76,9 @@ def _mean3_rows(residual, out, y0: int, y1: int) -> None:
         rows = np.float32(bottom - top + 1)
         for x in range(w):
             first, last = max(x - 1, 0), min(x + 1, w - 1)
-            total = column_sums[first] + column_sums[last] + (column_sums[x] if last - first == 2 else 0)
+            total = np.float32(0)
+            for xx in range(first, last + 1):
+                total += column_sums[xx]
             out[y, x] = total / (rows * (last - first + 1))
 
 
