@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from stereocli import registry
+from stereocli.match.cost import box_mean_image
 from stereocli.match.kernels import photo as kp
 from stereocli.match.state import MatchState
 from test_kernels_sgm import on_one_and_two_threads
@@ -219,10 +220,10 @@ def test_the_residual_and_its_3x3_mean():
     right[0, 1] = left[0, 2]
     np.testing.assert_array_equal(kp.colour_residual(left, right, disp)[0, 2:4], [0, 3])
     box = np.array([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]], np.float32)
-    # Each pixel's mean over its 3x3 window clipped at the borders.
-    np.testing.assert_allclose(kp.mean3(box), [[3.0, 3.5, 4.0], [3.0, 3.5, 4.0]])
-    np.testing.assert_allclose(kp.mean3(box[:, :1].copy()), [[2.5], [2.5]])  # one column
-    np.testing.assert_allclose(kp.mean3(box[:1].copy()), [[1.5, 2.0, 2.5]])  # one row
+    # The residual's 3x3 mean: each pixel's mean over its window clipped at the borders.
+    np.testing.assert_allclose(box_mean_image(box, 1, 1), [[3.0, 3.5, 4.0], [3.0, 3.5, 4.0]])
+    np.testing.assert_allclose(box_mean_image(box[:, :1].copy(), 1, 1), [[2.5], [2.5]])  # one column
+    np.testing.assert_allclose(box_mean_image(box[:1].copy(), 1, 1), [[1.5, 2.0, 2.5]])  # one row
 
 
 def test_unknown_parameters_are_config_errors():

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..registry import StageTraits, param, register
-from .cost import _channels, colour_switch
+from .cost import _channels, box_mean_image, colour_switch
 from .kernels import photo as kp
 from .state import MatchState
 
@@ -61,7 +61,7 @@ def photo_consistency(state: MatchState, p: PhotoConsistencyParams) -> None:
     residual = kp.colour_residual(left, right, disparity)
     # The median is the map's usual residual (noise, exposure and sampling differences between
     # the views): a pixel stands out only against it. Every fourth row, every other column.
-    smoothed = kp.mean3(residual)
+    smoothed = box_mean_image(residual, 1, 1)
     sample = smoothed[::4, ::2][valid[::4, ::2]]
     threshold = max(p.ratio * float(np.median(sample)), p.min_residual) if sample.size else p.min_residual
     flagged = valid & (smoothed > threshold)

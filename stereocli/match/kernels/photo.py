@@ -43,7 +43,8 @@ def _residual_at(left, right, disp, y: int, x: int):
 
 @njit(cache=True, inline="always")
 def _mean3(residual, y: int, x: int):
-    """The mean of ``residual`` over the 3x3 window around (y, x), clipped at the borders."""
+    """The mean of ``residual`` over the 3x3 window around (y, x), clipped at the borders: one
+    pixel's value of :func:`~stereocli.match.cost.box_mean_image` with radius 1."""
     h, w = residual.shape
     total = np.float32(0)
     count = 0
@@ -62,26 +63,6 @@ def _residual_rows(left, right, disp, out, y0: int, y1: int) -> None:
             out[y, x] = _residual_at(left, right, disp, y, x)
 
 
-@chunk_kernel
-def _mean3_rows(residual, out, y0: int, y1: int) -> None:
-    """:func:`mean3` on rows ``y0`` to ``y1`` (exclusive) of ``out``."""
-    h, w = residual.shape
-    column_sums = np.empty(w, np.float32)
-    for y in range(y0, y1):
-        top, bottom = max(y - 1, 0), min(y + 1, h - 1)
-        column_sums[:] = 0
-        for yy in range(top, bottom + 1):
-            for x in range(w):
-                column_sums[x] += residual[yy, x]
-        rows = np.float32(bottom - top + 1)
-        for x in range(w):
-            first, last = max(x - 1, 0), min(x + 1, w - 1)
-            total = np.float32(0)
-            for xx in range(first, last + 1):
-                total += column_sums[xx]
-            out[y, x] = total / (rows * (last - first + 1))
-
-
 def colour_residual(left: np.ndarray, right: np.ndarray, disp: np.ndarray) -> np.ndarray:
     """(H, W) float32: each left pixel's largest channel difference (grey levels) from the right
     pixel its disparity maps it onto, column ``x − round(d)``; 0 where ``disp`` is invalid or
@@ -89,13 +70,6 @@ def colour_residual(left: np.ndarray, right: np.ndarray, disp: np.ndarray) -> np
     float32 px."""
     out = np.empty(disp.shape, np.float32)
     for_rows(_residual_rows, disp.shape[0], left, right, disp, out)
-    return out
-
-
-def mean3(residual: np.ndarray) -> np.ndarray:
-    """(H, W) float32: ``residual`` (H, W) float32 averaged over 3x3 (clipped at the borders)."""
-    out = np.empty(residual.shape, np.float32)
-    for_rows(_mean3_rows, residual.shape[0], residual, out)
     return out
 
 
