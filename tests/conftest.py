@@ -29,6 +29,27 @@ def samples() -> Path:
     return SAMPLES
 
 
+#: Middlebury v2 scenes under ``shared_data``: folder, left and right image stems, ndisp.
+V2_SCENES = {"tsukuba": ("middlebury2001/tsukuba", "im3", "im4", 16), "venus": ("middlebury2001/venus", "im2", "im6", 32),
+             "teddy": ("middlebury2003/teddy", "im2", "im6", 64), "cones": ("middlebury2003/cones", "im2", "im6", 64)}
+
+
+def v2_bad1(shared_data: Path, scene: str, preset: str, sets: tuple[str, ...] = ()) -> float:
+    """Middlebury v2 nonocc bad > 1 px (%) of ``preset`` (with ``--set`` assignments ``sets``) on a scene."""
+    from stereocli.evaluate.api import EvalOptions, evaluate_pair
+    from stereocli.evaluate.datasets import load_scene
+    from stereocli.io.images import read_image
+    from stereocli.match.config import build_config
+    from stereocli.match.pipeline import match_pair
+
+    folder, left, right, ndisp = V2_SCENES[scene]
+    folder = shared_data / folder
+    disparity = match_pair(read_image(folder / f"{left}.png"), read_image(folder / f"{right}.png"),
+                           build_config([preset], list(sets)), ndisp=ndisp).disparity
+    result = evaluate_pair(disparity, load_scene(folder), options=EvalOptions(ndisp=ndisp))
+    return result.metrics["nonocc"]["bad1.0"]
+
+
 def two_scenes(root: Path, width: int, height: int) -> Path:
     """Synthetic scene folders ``root/planes`` and ``root/curved`` (MiddEval3 layout, calib.txt)."""
     from stereocli.synth.scenes import write_scene

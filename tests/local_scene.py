@@ -35,11 +35,12 @@ def scene(h: int = 64, w: int = 96, d_bg: int = 3, d_fg: int = 9, *, color: bool
     return np.ascontiguousarray(left, np.float32), np.ascontiguousarray(right, np.float32), gt, mask
 
 
-def render(back: np.ndarray, front: np.ndarray, h: int, w: int, d_bg: int, d_fg: int):
-    """Both views of a rectangle cut from ``front`` (the middle third of the width, half of the
-    height) at disparity ``d_fg`` before ``back`` at ``d_bg`` (both (h, w + 40, C) textures):
-    ``left, right, gt, (y0, y1, x0, x1)``."""
-    y0, y1, x0, x1 = h // 4, 3 * h // 4, w // 3, 2 * w // 3
+def render(back: np.ndarray, front: np.ndarray, h: int, w: int, d_bg: int, d_fg: int,
+           rect: tuple[int, int, int, int] | None = None):
+    """Both views of a rectangle cut from ``front`` (rows ``y0:y1``, columns ``x0:x1`` of ``rect``;
+    by default the middle third of the width, half of the height) at disparity ``d_fg`` before
+    ``back`` at ``d_bg`` (both (h, w + 40, C) textures): ``left, right, gt, (y0, y1, x0, x1)``."""
+    y0, y1, x0, x1 = rect if rect is not None else (h // 4, 3 * h // 4, w // 3, 2 * w // 3)
     xs = np.arange(w)
     left = back[:, :w].copy()
     left[y0:y1, x0:x1] = front[y0:y1, x0:x1]

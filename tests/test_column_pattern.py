@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
+from conftest import v2_bad1
 from local_scene import run_stages, wta
 from stereocli import registry
 from stereocli.match.config import build_config
@@ -158,19 +159,6 @@ def test_bad_parameters_are_config_errors(values, key):
 # --- real data -------------------------------------------------------------------------------
 
 
-def _tsukuba_bad1(shared_data, preset: str, sets: tuple[str, ...] = ()) -> float:
-    from stereocli.evaluate.api import EvalOptions, evaluate_pair
-    from stereocli.evaluate.datasets import load_scene
-    from stereocli.io.images import read_image
-    from stereocli.match.pipeline import match_pair
-
-    folder = shared_data / "middlebury2001" / "tsukuba"
-    disparity = match_pair(read_image(folder / "im3.png"), read_image(folder / "im4.png"),
-                           build_config([preset], list(sets)), ndisp=16).disparity
-    result = evaluate_pair(disparity, load_scene(folder), options=EvalOptions(ndisp=16))
-    return result.metrics["nonocc"]["bad1.0"]
-
-
 def test_the_tsukuba_camera_has_the_pattern_and_middeval3_cameras_do_not(shared_data):
     from stereocli.io.images import read_image
     from stereocli.match.state import luma
@@ -189,6 +177,6 @@ def test_the_tsukuba_camera_has_the_pattern_and_middeval3_cameras_do_not(shared_
 @pytest.mark.parametrize("preset, at_least", [("default", 0.4), ("accurate", 0.2)])
 def test_removing_the_pattern_improves_tsukuba(shared_data, preset, at_least):
     # Measured (nonocc bad > 1 %): default 3.84 -> 3.07, accurate 3.12 -> 2.73.
-    without = _tsukuba_bad1(shared_data, preset, ("preprocess.column_pattern.min_amplitude=50",))
-    with_it = _tsukuba_bad1(shared_data, preset)
+    without = v2_bad1(shared_data, "tsukuba", preset, ("preprocess.column_pattern.min_amplitude=50",))
+    with_it = v2_bad1(shared_data, "tsukuba", preset)
     assert with_it <= without - at_least, (without, with_it)

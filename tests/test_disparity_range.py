@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
+from conftest import V2_SCENES
 from stereocli.errors import DataError
 from stereocli.features.alignment import DEFAULT_THRESHOLD, row_alignment
 from stereocli.features.disparity_range import estimate_range
@@ -214,14 +215,11 @@ def test_two_files_of_a_scene_folder_are_that_scene(run_cli, tmp_path):
 
 # --- real scenes (../shared/data) ---------------------------------------------------------------
 
-V2 = {"tsukuba": ("middlebury2001/tsukuba", "im3", "im4", 16), "venus": ("middlebury2001/venus", "im2", "im6", 32),
-      "teddy": ("middlebury2003/teddy", "im2", "im6", 64), "cones": ("middlebury2003/cones", "im2", "im6", 64)}
-
 
 def _real_scenes(data: Path):
     for folder in sorted((data / "middlebury2014" / "trainingQ").iterdir()):
         yield folder.name, folder, folder / "im0.png", folder / "im1.png"
-    for name, (sub, left, right, _) in V2.items():
+    for name, (sub, left, right, _) in V2_SCENES.items():
         yield name, data / sub, data / sub / f"{left}.png", data / sub / f"{right}.png"
 
 
@@ -283,8 +281,8 @@ def test_default_preset_with_estimated_ranges_scores_like_the_known_ones(shared_
     known, estimated = [], []
     for name, folder, left_path, right_path in _real_scenes(shared_data):
         left, right = read_image(left_path), read_image(right_path)
-        if name in V2:
-            ndisp, options, gt = V2[name][3], EvalOptions(ndisp=V2[name][3]), load_scene(folder)
+        if name in V2_SCENES:
+            ndisp, options, gt = V2_SCENES[name][3], EvalOptions(ndisp=V2_SCENES[name][3]), load_scene(folder)
         else:
             ndisp = read_calib_txt(folder / "calib.txt").ndisp
             options, gt = EvalOptions(resolution="Q", threshold_units="full"), load_scene(folder, resolution="Q")

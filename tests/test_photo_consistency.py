@@ -13,6 +13,8 @@ from stereocli import registry
 from stereocli.match.cost import box_mean_image
 from stereocli.match.kernels import photo as kp
 from stereocli.match.state import MatchState
+from conftest import v2_bad1
+from local_scene import render
 from test_kernels_sgm import on_one_and_two_threads
 
 INF = np.float32(np.inf)
@@ -25,18 +27,14 @@ def _texture(height: int, width: int, seed: int) -> np.ndarray:
     return np.random.default_rng(seed).uniform(60, 250, (height, width, 3)).astype(np.float32)
 
 
-def _pair(object_mask: np.ndarray, object_colour: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A fronto-parallel background at 2 px and an object (``object_mask`` of the left view,
-    ``object_colour`` (H, W, 3) its colours) at 8 px: the left view, the right view and the
-    left-referenced ground truth (float32 px)."""
-    canvas = _texture(H, W + BACKGROUND, seed=1)  # the background, seen at x + 2 from the right view
-    left = canvas[:, :W].copy()
-    right = canvas[:, BACKGROUND:BACKGROUND + W].copy()
-    left[object_mask] = object_colour[object_mask]
-    ys, xs = np.nonzero(object_mask)
-    right[ys, xs - OBJECT] = object_colour[ys, xs]
-    truth = np.where(object_mask, OBJECT, BACKGROUND).astype(np.float32)
-    return left, right, truth
+def _pair(rect: tuple[int, int, int, int], front: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A textured background at 2 px and a rectangular object (rows ``y0:y1``, columns ``x0:x1``
+    of ``rect``; colours from ``front``, (H, W + 40, 3)) at 8 px: the left view, the right view,
+    the left-referenced ground truth (float32 px) and the object's mask."""
+    left, right, truth, (y0, y1, x0, x1) = render(_texture(H, W + 40, seed=1), front, H, W, BACKGROUND, OBJECT, rect)
+    mask = np.zeros((H, W), bool)
+    mask[y0:y1, x0:x1] = True
+    return left, right, truth, mask
 
 
 def _occluded(object_mask: np.ndarray) -> np.ndarray:
@@ -62,10 +60,7 @@ def _run(left, right, disparity, **values) -> tuple[np.ndarray, dict]:
 def _thin_post() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """A 3-px wide vertical post (rows 5-34, columns 40-42) of one dark colour in front of the
     background; returns the pair, the ground truth and the post's mask."""
-    post = np.zeros((H, W), bool)
-    post[5:35, 40:43] = True
-    left, right, truth = _pair(post, np.full((H, W, 3), 30.0, np.float32))
-    return left, right, truth, post
+    return _pair((5, 35, 40, 43), np.full((H, W + 40, 3), 30.0, np.float32))
 
 
 def test_a_thin_structure_that_took_the_background_gets_its_disparity_back():
@@ -89,9 +84,7 @@ def test_a_thin_structure_that_took_the_background_gets_its_disparity_back():
 
 
 def test_a_fattened_rim_returns_to_the_background():
-    square = np.zeros((H, W), bool)
-    square[10:30, 30:50] = True
-    left, right, truth = _pair(square, _texture(H, W, seed=2))
+    left, right, truth, square = _pair((10, 30, 30, 50), _texture(H, W + 40, seed=2))
     # The square's disparity spills 2 px over its right edge (foreground fattening).
     fattened = truth.copy()
     fattened[10:30, 50:52] = OBJECT
@@ -118,8 +111,7 @@ def test_a_correct_map_and_invalid_pixels_are_left_alone():
     np.testing.assert_array_equal(fixed, disparity)
     assert notes["flagged"] == 0
     # A plain textured plane matched exactly: no residual, nothing flagged.
-    plane = np.zeros((H, W), bool)
-    left, right, truth = _pair(plane, np.zeros((H, W, 3), np.float32))
+    left, right, truth, _ = _pair((0, 0, 0, 0), np.zeros((H, W + 40, 3), np.float32))
     fixed, notes = _run(left, right, truth)
     np.testing.assert_array_equal(fixed, truth)
     assert notes == {"threshold": 10.0, "flagged": 0.0, "changed": 0.0}
@@ -239,34 +231,15 @@ def test_unknown_parameters_are_config_errors():
 # --- real data -------------------------------------------------------------------------------
 
 
-def _v2_bad1(shared_data, scene: str, sets: tuple[str, ...] = ()) -> float:
-    """Middlebury v2 nonocc bad > 1 px (%) of ``quality`` (with ``--set`` assignments ``sets``)."""
-    from stereocli.evaluate.api import EvalOptions, evaluate_pair
-    from stereocli.evaluate.datasets import load_scene
-    from stereocli.io.images import read_image
-    from stereocli.match.config import build_config
-    from stereocli.match.pipeline import match_pair
-
-    folder, left, right, ndisp = {"tsukuba": ("middlebury2001/tsukuba", "im3", "im4", 16),
-                                  "venus": ("middlebury2001/venus", "im2", "im6", 32),
-                                  "teddy": ("middlebury2003/teddy", "im2", "im6", 64),
-                                  "cones": ("middlebury2003/cones", "im2", "im6", 64)}[scene]
-    folder = shared_data / folder
-    disparity = match_pair(read_image(folder / f"{left}.png"), read_image(folder / f"{right}.png"),
-                           build_config(["quality"], list(sets)), ndisp=ndisp).disparity
-    result = evaluate_pair(disparity, load_scene(folder), options=EvalOptions(ndisp=ndisp))
-    return result.metrics["nonocc"]["bad1.0"]
-
-
 def test_quality_gets_the_tsukuba_lamp_arms_back(shared_data):
     # Measured: 2.02 -> 1.47 % (the lamp's thin arms, given the background by SGM, 0.65 -> 0.31).
-    without = _v2_bad1(shared_data, "tsukuba", ("refinement.photo_consistency.margin=20",))
-    with_it = _v2_bad1(shared_data, "tsukuba")
+    without = v2_bad1(shared_data, "tsukuba", "quality", ("refinement.photo_consistency.margin=20",))
+    with_it = v2_bad1(shared_data, "tsukuba", "quality")
     assert with_it <= without - 0.4, (without, with_it)
 
 
 def test_quality_meets_the_middlebury_v2_targets(shared_data):
     # Targets 1.5 / 0.3 / 4.5 / 2.2 % nonocc bad > 1; measured 1.47 / 0.22 / 3.55 / 2.06.
     targets = {"tsukuba": 1.5, "venus": 0.3, "teddy": 4.5, "cones": 2.2}
-    scores = {scene: _v2_bad1(shared_data, scene) for scene in targets}
+    scores = {scene: v2_bad1(shared_data, scene, "quality") for scene in targets}
     assert all(scores[scene] <= target for scene, target in targets.items()), scores
