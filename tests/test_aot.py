@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import REPO
 
 from stereocli.match.config import build_config
 from stereocli.match.kernels import aot
@@ -260,3 +261,31 @@ def test_numba_starts_on_first_use_and_kernels_imported_later_get_its_prange():
             "print(costs.prange is numba.prange, type(sgm._penalty2).__name__)")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert done.stdout.split() == ["False", "True", "CPUDispatcher"], done.stderr
+
+
+def test_an_install_that_did_not_build_says_why_and_how_to_fix_it(monkeypatch, tmp_path):
+    (tmp_path / aot.FAILED_NOTE).write_text("CompileError: no C compiler\n")  # what setup.py leaves
+    monkeypatch.setenv("STEREOCLI_AOT", "1")
+    monkeypatch.setenv("STEREOCLI_AOT_DIR", str(tmp_path))
+    monkeypatch.setattr(aot, "_table", [None])
+    assert aot.describe() == "none compiled at install (not built at install: CompileError: no C compiler): numba's JIT"
+    advice = aot.missing_build_advice()
+    assert "CompileError: no C compiler" in advice and "to build them: " in advice
+    monkeypatch.setenv("STEREOCLI_AOT", "0")  # turned off on purpose: nothing to advise
+    monkeypatch.setattr(aot, "_table", [None])
+    assert aot.missing_build_advice() == ""
+
+
+@pytest.mark.slow
+def test_a_wheel_without_compiled_kernels_is_pure_python(tmp_path):
+    # STEREOCLI_AOT=0 stands for a failed build; the wheel must then not claim a platform.
+    done = subprocess.run([sys.executable, "-m", "pip", "wheel", str(REPO), "--no-deps", "-q", "-w", str(tmp_path)],
+                          capture_output=True, text=True, env=dict(os.environ, STEREOCLI_AOT="0"))
+    assert done.returncode == 0, done.stderr[-2000:]
+    [wheel] = tmp_path.glob("stereocli-*.whl")
+    assert wheel.name.endswith("-py3-none-any.whl"), wheel.name
+    import zipfile
+
+    names = zipfile.ZipFile(wheel).namelist()
+    assert "stereocli/match/kernels/_aot/BUILD_FAILED.txt" in names
+    assert not [n for n in names if n.endswith((".so", ".pyd"))]

@@ -83,9 +83,9 @@ def cli(ctx: click.Context, verbose: int, quiet: int) -> None:
     ctx.call_on_close(lambda: notify_compilation(None))  # for this command only
 
 
-#: Said on stderr when kernels compile (the numbers are the README's "Start-up and first run").
+#: Said on stderr when kernels compile (a cache miss: the README's "Start-up and first run").
 COMPILE_NOTICE = ("stereocli: compiling the numba kernels that this preset or image type needs beyond those built "
-                  "at install: about 10-13 s on two cores, once; later runs load them from the cache")
+                  "at install, once; later runs load them from the cache")
 
 
 def _on_first_compile(ctx: click.Context):
@@ -105,7 +105,10 @@ def _on_first_compile(ctx: click.Context):
 def _compile_notice(ctx: click.Context) -> None:
     """The first kernel of this run has to compile: say so (unless -q)."""
     if ctx.obj.get("verbosity", 0) >= 0:  # -q: errors only
-        click.echo(COMPILE_NOTICE, err=True)
+        from ..match.kernels.aot import missing_build_advice
+
+        advice = missing_build_advice()  # an install that lost its compiled kernels says so here
+        click.echo(f"stereocli: {advice}" if advice else COMPILE_NOTICE, err=True)
 
 
 def _warm_up_first_run() -> bool:

@@ -42,6 +42,8 @@ BUILD_DIR = KERNELS_DIR / "_aot"
 #: One line per compiled kernel: ``module.kernel<TAB>type, type, ...`` (numba's type names).
 SIGNATURES_FILE = KERNELS_DIR / "aot_signatures.txt"
 MANIFEST = "manifest.json"
+#: Written by ``setup.py`` into :data:`BUILD_DIR` when the build at install failed: the reason.
+FAILED_NOTE = "BUILD_FAILED.txt"
 #: Name prefix of the built extension modules (``_aot`` is a plain folder: they are loaded by
 #: path, never imported by name).
 MODULE_PREFIX = "stereocli_aot_"
@@ -191,7 +193,8 @@ def _usable_build() -> tuple[dict, str]:
     folder = Path(os.environ.get("STEREOCLI_AOT_DIR") or BUILD_DIR)
     manifest = read_manifest(folder)
     if manifest is None:
-        return {}, f"no build in {folder}"
+        failed = install_failure(folder)
+        return {}, f"not built at install: {failed}" if failed else f"no build in {folder}"
     expected = expected_manifest(manifest.get("kernels", {}))
     for key, what in (("sources", "other kernel sources"), ("cpu", "another CPU"), ("numpy", "another NumPy"),
                       ("python", "another Python")):
@@ -213,6 +216,37 @@ def describe() -> str:
         broken = f"; {len(_not_loaded)} did not load: {', '.join(_not_loaded)}" if _not_loaded else ""
         return f"{len(table)} compiled at install; others from numba's JIT{broken}"
     return f"none compiled at install ({_why_not[0]}): numba's JIT"
+
+
+def install_failure(folder: Path = BUILD_DIR) -> str:
+    """Why ``pip install`` did not build the kernels into ``folder`` (``setup.py`` leaves the
+    reason in :data:`FAILED_NOTE`), or "" when it did not say (a checkout, or a build)."""
+    try:
+        return (Path(folder) / FAILED_NOTE).read_text().strip()[:300]
+    except OSError:
+        return ""
+
+
+def missing_build_advice() -> str:
+    """One line for a process whose kernels were not compiled ahead of time: why, and the fix;
+    "" when the build is in use (or was turned off with ``STEREOCLI_AOT=0``)."""
+    if _loaded_table() or os.environ.get("STEREOCLI_AOT", "1") == "0":
+        return ""
+    checkout = (KERNELS_DIR.parents[2] / "pyproject.toml").is_file()
+    fix = ("python -m stereocli.match.kernels.aot" if checkout else
+           "pip install --force-reinstall --no-deps <stereocli source> with a C compiler and a numba that has numba.pycc")
+    return (f"the kernels were not compiled ahead of time ({_why_not[0]}); numba compiles them now, once "
+            f"(later runs load them from its cache); to build them: {fix}")
+
+
+def build_key() -> str:
+    """What a build depends on (kernel sources, CPU, Python, NumPy major, numba), as a folder
+    name for a build cache."""
+    import numba
+
+    parts = expected_manifest({})
+    text = "|".join(str(parts[key]) for key in ("sources", "cpu", "numpy", "python")) + "|" + numba.__version__
+    return hashlib.sha256(text.encode()).hexdigest()[:20]
 
 
 def read_manifest(folder: Path) -> dict | None:
