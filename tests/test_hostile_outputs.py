@@ -61,6 +61,115 @@ def _record(out: Path) -> dict[str, dict]:
     return {item["name"]: item for item in json.loads((out / "run.json").read_text())["items"]}
 
 
+# -- names that climb out of OUTDIR or take the batch's own names ---------------------------------
+
+def _named_pair(folder: Path, scenes: Path, stem: str) -> tuple[Path, Path]:
+    folder.mkdir(parents=True, exist_ok=True)
+    left, right = folder / f"{stem}.png", folder / "right.png"
+    shutil.copy(scenes / "planes" / "im0.png", left)
+    shutil.copy(scenes / "planes" / "im1.png", right)
+    return left, right
+
+
+@pytest.mark.parametrize("stem,name", [("..", "__"), (".", "_"), (".stereocli-match.done", "_stereocli-match.done")])
+def test_a_pair_named_by_a_dot_stem_stays_inside_outdir(run_cli, tmp_path, scenes, stem, name):
+    left, right = _named_pair(tmp_path / "in", scenes, stem)
+    work = tmp_path / "work"
+    (work / "time.txt").parent.mkdir()
+    (work / "time.txt").write_text("a user's file\n")
+    before = _listing(work)
+    for extra in ((), ("--skip-existing",)):
+        r = run_cli("match", left, right, "-o", work / "out", *FAST, "--ndisp", "32", *extra)
+        assert r.code == 0, r.err
+    after = _listing(work)
+    assert {k: v for k, v in after.items() if not k.startswith("out")} == before
+    assert sorted(p.name for p in (work / "out").iterdir()) == [name, "run.json"]
+    assert_clean(work / "out", (name,))
+    assert _record(work / "out")[name]["status"] == "skipped"
+
+
+def test_rectify_names_are_sanitised_too(run_cli, tmp_path, scenes, rig):
+    left, right = _named_pair(tmp_path / "in", scenes, "..")
+    work = tmp_path / "work"
+    work.mkdir()
+    r = run_cli("rectify", left, right, "--calib", rig, "-o", work / "out", "--ndisp", "16")
+    assert r.code == 0, r.err
+    assert sorted(p.name for p in work.iterdir()) == ["out"]
+    assert_clean(work / "out", ("__",))
+    assert (work / "out" / "__" / "im0.png").is_file()
+
+
+def test_a_scene_named_run_json_does_not_take_the_records_place(run_cli, tmp_path, scenes):
+    data = tmp_path / "data"
+    shutil.copytree(scenes / "planes", data / "run.json")
+    shutil.copytree(scenes / "curved", data / "curved")
+    out = tmp_path / "out"
+    for extra, summary in (((), "2 ok, 0 skipped"), (("--skip-existing",), "0 ok, 2 skipped")):
+        r = run_cli("match", data, "-o", out, *FAST, *extra)
+        assert r.code == 0 and summary in r.err, r.err
+        assert (out / "run.json").is_file() and set(_record(out)) == {"_run.json", "curved"}
+    assert_clean(out, ("_run.json", "curved"))
+
+
+def test_a_newline_in_a_scene_name_stays_out_of_output_names(run_cli, tmp_path, scenes):
+    data = tmp_path / "data"
+    shutil.copytree(scenes / "planes", data / "pla\nnes")
+    r = run_cli("match", data, "-o", tmp_path / "out", *FAST)
+    assert r.code == 0, r.err
+    assert_clean(tmp_path / "out", ("pla_nes",))
+
+
+def test_error_maps_of_a_scene_named_dot_dot_stay_inside_their_folder(run_cli, tmp_path, results, scenes):
+    gt = tmp_path / "gt"
+    shutil.copytree(scenes / "planes", gt / "planes")
+    (gt / "planes" / "sub").mkdir()
+    work = tmp_path / "work"
+    r = run_cli("eval", results / "planes" / "disp0.pfm", gt / "planes" / "sub" / "..", "--error-maps", work / "maps")
+    assert r.code == 0, r.err
+    assert sorted(p.name for p in work.iterdir()) == ["maps"]
+    assert sorted(p.name for p in (work / "maps" / "__").iterdir()) == ["bad.png", "disparity.png", "error.png", "gt.png"]
+
+
+def test_a_symlinked_pair_folder_leading_out_of_outdir_is_refused(run_cli, tmp_path, scenes):
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "planes").symlink_to(elsewhere)
+    r = run_cli("match", scenes, "-o", out, *FAST, "--skip-existing")
+    assert r.code == 2, r.err
+    assert f"Error: planes: its output {out / 'planes' / 'disp0.pfm'} resolves to" in r.err
+    assert "outside the output folder" in r.err
+    assert not any(elsewhere.iterdir()) and sorted(p.name for p in out.iterdir()) == ["planes"]
+
+
+# -- outputs that would replace inputs ------------------------------------------------------------
+
+@pytest.mark.parametrize("policy", [(), ("--skip-existing",), ("--overwrite",)])
+def test_rectify_never_replaces_its_own_inputs(run_cli, tmp_path, scenes, rig, policy):
+    data = tmp_path / "photos"
+    shutil.copytree(scenes, data)
+    before = _listing(data)
+    r = run_cli("rectify", data, "--calib", rig, "-o", data, "--ndisp", "16", *policy)
+    assert r.code == 2, r.err
+    assert f"would replace the input {data / 'curved' / 'im0.png'}" in r.err
+    assert "--skip-existing" not in r.err and "--overwrite" not in r.err
+    assert len([line for line in r.err.splitlines() if line.startswith("Error")]) == 1
+    assert _listing(data) == before
+
+
+def test_triangulate_never_replaces_its_own_inputs(run_cli, tmp_path, results, scenes):
+    res = tmp_path / "res"
+    shutil.copytree(results, res)
+    conf = res / "planes" / "depth.pfm"  # a confidence map where triangulate writes the depth
+    shutil.copy(res / "planes" / "disp0.pfm", conf)
+    before = _listing(res)
+    r = run_cli("triangulate", res / "planes", "--scenes", scenes, "--confidence", conf, "-o", res)
+    assert r.code == 2, r.err
+    assert f"would replace the input {conf}" in r.err
+    assert _listing(res) == before
+
+
 # -- the lock ----------------------------------------------------------------------------------------
 
 def test_a_dangling_lock_symlink_is_taken_over(run_cli, tmp_path, scenes):

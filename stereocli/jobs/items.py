@@ -27,7 +27,7 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable
 
-from ..errors import EXIT_DATA, EXIT_OK, EXIT_PARTIAL, EXIT_USAGE, StereoError, check_outputs_free
+from ..errors import EXIT_DATA, EXIT_OK, EXIT_PARTIAL, EXIT_USAGE, ConfigError, StereoError, check_outputs_free
 from ..io.atomic import plain_mode, write_text
 
 RESUME_HINT = "use --overwrite to replace or --skip-existing to resume"
@@ -148,6 +148,34 @@ def is_done(item: WorkItem) -> bool:
     if not item.outputs or len(item.existing_outputs()) != len(item.outputs):
         return False
     return item.marker is None or item.marker.is_file()
+
+
+def check_output_paths(items: list[WorkItem], outdir: str | os.PathLike | None = None) -> None:
+    """Refuse a plan that writes where it must not, before any work: an output that is (once
+    resolved) an input of any item, and with ``outdir`` an output outside it once resolved
+    (a symbolic link), or in the place of the batch's own files (run record, lock, staging
+    folder, markers). Raises :class:`~stereocli.errors.ConfigError` naming the item and path."""
+    from ..io.pairs import RESERVED_NAMES
+    from .lock import LOCK_NAME
+
+    inputs = {os.path.realpath(path): path for item in items for path in item.inputs.values()}
+    root = os.path.realpath(outdir) if outdir is not None else None
+    for item in items:
+        for out in item.outputs.values() if not item.error else ():
+            real = os.path.realpath(out)
+            if real in inputs:
+                raise ConfigError(f"{item.name}: its output {out} would replace the input {inputs[real]}; "
+                                  "write to an output folder that holds no inputs")
+            if root is None:
+                continue
+            first = os.path.relpath(real, root).split(os.sep)[0]
+            if first in ("..", ".") or os.path.isabs(first):
+                raise ConfigError(f"{item.name}: its output {out} resolves to {real}, outside the output folder "
+                                  f"{outdir}")
+            if first in (*RESERVED_NAMES, STAGING, LOCK_NAME) or (first.startswith(".stereocli-")
+                                                                   and first.endswith(".done")):
+                raise ConfigError(f"{item.name}: its output {out} takes the place of {first}, which the batch "
+                                  "keeps for itself")
 
 
 def finished_in_run(item: WorkItem) -> bool:

@@ -39,7 +39,7 @@ import numpy as np
 from ..errors import ConfigError, DataError, StereoError
 from ..io.atomic import write_text
 from ..io.pairs import StereoInput
-from .items import WorkItem, label_message, prepare_worker
+from .items import WorkItem, check_output_paths, label_message, prepare_worker
 
 if TYPE_CHECKING:
     from ..match.pipeline import PreparedPair, StripMap, StripResult
@@ -139,6 +139,7 @@ def plan_items(
         items.append(WorkItem(pair.name, inputs, outputs, options, folder=str(folder), command="match"))
         if error is not None:
             items[-1].error, items[-1].error_code = label_message(pair.name, str(error)), error.exit_code
+    check_output_paths(items, outdir)
     return items
 
 

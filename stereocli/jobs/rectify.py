@@ -19,7 +19,7 @@ from pathlib import Path
 
 from ..errors import DataError
 from ..io.pairs import StereoInput
-from .items import WorkItem
+from .items import WorkItem, check_output_paths
 
 _MAPS_CACHE: dict = {}
 
@@ -36,6 +36,7 @@ def plan_items(pairs: list[StereoInput], outdir: str | Path, *, calib_path: str,
                               outputs, {"alpha": alpha, "size": list(size) if size else None,
                                         "interpolation": interpolation, "ndisp": ndisp, "min_depth": min_depth},
                               folder=str(out), command="rectify"))
+    check_output_paths(items, outdir)
     return items
 
 
@@ -131,11 +132,13 @@ def plan_uncalibrated(pairs: list[StereoInput], outdir: str | Path, *, interpola
                       check: bool = False, ndisp: int | None = None) -> list[WorkItem]:
     """One :class:`WorkItem` per pair for ``rectify --uncalibrated``; :func:`estimate_uncalibrated`
     adds the homographies to their options."""
-    return [WorkItem(pair.name, {"left": pair.left, "right": pair.right},
-                     _outputs(Path(outdir) / pair.name, check, "rectification.json"),
-                     {"uncalibrated": True, "interpolation": interpolation, "ndisp": ndisp},
-                     folder=str(Path(outdir) / pair.name), command="rectify")
-            for pair in pairs]
+    items = [WorkItem(pair.name, {"left": pair.left, "right": pair.right},
+                      _outputs(Path(outdir) / pair.name, check, "rectification.json"),
+                      {"uncalibrated": True, "interpolation": interpolation, "ndisp": ndisp},
+                      folder=str(Path(outdir) / pair.name), command="rectify")
+             for pair in pairs]
+    check_output_paths(items, outdir)
+    return items
 
 
 class _PairImages:
