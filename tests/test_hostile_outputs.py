@@ -16,9 +16,11 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from conftest import REPO, assert_clean, two_scenes
+from stereocli.io.images import read_image, write_image
 
 FAST = ("-c", "fast")
 OTHER = ("-c", "fast", "--set", "optimizer.p2=2.5")  # another config, as fast to run
@@ -59,6 +61,85 @@ def _listing(folder: Path) -> dict[str, tuple[int, int]]:
 
 def _record(out: Path) -> dict[str, dict]:
     return {item["name"]: item for item in json.loads((out / "run.json").read_text())["items"]}
+
+
+# -- a resume redoes what another config or other inputs made -------------------------------------
+
+def test_skip_existing_after_an_interrupted_overwrite_redoes_the_old_configs_items(run_cli, tmp_path, scenes):
+    out = tmp_path / "out"
+    assert run_cli("match", scenes, "-o", out, *FAST).code == 0
+    # An --overwrite with another config that stopped after one of the two pairs.
+    assert run_cli("match", scenes / "planes", "-o", out, *OTHER, "--overwrite").code == 0
+    old_curved = (out / "curved" / "disp0.pfm").read_bytes()
+    resumed = run_cli("match", scenes, "-o", out, *OTHER, "--skip-existing")
+    assert resumed.code == 0, resumed.err
+    assert "1 ok, 1 skipped, 0 failed" in resumed.err
+    assert "Note: curved: stale outputs redone: made with other settings" in resumed.err
+    assert "planes: stale" not in resumed.err
+    record = _record(out)
+    assert record["planes"]["status"] == "skipped" and "redone" not in record["planes"]
+    assert record["curved"]["status"] == "ok" and record["curved"]["redone"].startswith("made with other settings")
+    assert (out / "curved" / "disp0.pfm").read_bytes() != old_curved
+    p2 = [json.loads((out / n / "params.json").read_text())["config"]["optimizer"]["p2"] for n in ("planes", "curved")]
+    assert p2 == [2.5, 2.5]
+    again = run_cli("match", scenes, "-o", out, *OTHER, "--skip-existing")
+    assert again.code == 0 and "0 ok, 2 skipped" in again.err and "redone" not in again.err
+    assert_clean(out, ("planes", "curved"))
+
+
+def test_skip_existing_redoes_a_pair_whose_input_changed(run_cli, tmp_path, scenes):
+    """What a ``rectify --overwrite`` into a folder ``match`` used does: the images change."""
+    data = tmp_path / "data"
+    shutil.copytree(scenes, data)
+    assert run_cli("match", data, "-o", data, *FAST).code == 0  # match beside the images, as after rectify
+    left = data / "planes" / "im0.png"
+    write_image(left, np.ascontiguousarray(read_image(left)[::-1]))
+    resumed = run_cli("match", data, "-o", data, *FAST, "--skip-existing")
+    assert resumed.code == 0, resumed.err
+    assert "1 ok, 1 skipped" in resumed.err
+    assert f"Note: planes: stale outputs redone: the left input {left} changed since" in resumed.err
+    assert _record(data)["planes"]["redone"].startswith(f"the left input {left} changed")
+
+
+def test_skip_existing_redoes_items_whose_marker_predates_the_recipe(run_cli, tmp_path, scenes):
+    out = tmp_path / "out"
+    assert run_cli("match", scenes, "-o", out, *FAST).code == 0
+    marker = out / "curved" / ".stereocli-match.done"
+    old = {k: v for k, v in json.loads(marker.read_text()).items() if k in ("command", "outputs", "run", "finished")}
+    marker.write_text(json.dumps(old) + "\n")  # as an older stereocli wrote it
+    resumed = run_cli("match", scenes, "-o", out, *FAST, "--skip-existing")
+    assert resumed.code == 0 and "1 ok, 1 skipped" in resumed.err, resumed.err
+    assert "Note: curved: stale outputs redone: its marker records no settings or inputs" in resumed.err
+    assert {"version", "config", "inputs"} <= set(json.loads(marker.read_text()))
+
+
+def test_triangulate_resume_redoes_clouds_of_a_rematched_disparity(run_cli, tmp_path, scenes):
+    res = tmp_path / "res"
+    assert run_cli("match", scenes, "-o", res, *FAST).code == 0
+    clouds = tmp_path / "clouds"
+    assert run_cli("triangulate", res, "--scenes", scenes, "-o", clouds).code == 0
+    assert run_cli("match", scenes / "curved", "-o", res, *OTHER, "--overwrite").code == 0
+    resumed = run_cli("triangulate", res, "--scenes", scenes, "-o", clouds, "--skip-existing")
+    assert resumed.code == 0, resumed.err
+    assert "1 ok, 1 skipped" in resumed.err and "Note: curved: stale outputs redone" in resumed.err
+    assert "the disparity input" in _record(clouds)["curved"]["redone"]
+
+
+def test_a_marker_from_another_version_does_not_match(run_cli, tmp_path, scenes):
+    from stereocli.io.pairs import discover_pairs
+    from stereocli.jobs.items import is_done, marker_matches
+    from stereocli.jobs.match import plan_items
+    from stereocli.match.config import build_config
+
+    out = tmp_path / "out"
+    assert run_cli("match", scenes / "planes", "-o", out, *FAST).code == 0
+    item = plan_items(discover_pairs([str(scenes / "planes")])[0], out, config=build_config(["fast"], []).as_dict(),
+                      ndisp=None, min_disp=None)[0]
+    assert marker_matches(item) == (True, "") and is_done(item)
+    marker = out / "planes" / ".stereocli-match.done"
+    marker.write_text(json.dumps({**json.loads(marker.read_text()), "version": "0.0.1"}))
+    ok, reason = marker_matches(item)
+    assert not ok and reason.startswith("made by stereocli 0.0.1") and not is_done(item)
 
 
 # -- names that climb out of OUTDIR or take the batch's own names ---------------------------------

@@ -10,7 +10,7 @@ import numpy as np
 
 from ..errors import DataError
 from ..io.pairs import output_name, unique_names
-from .items import WorkItem, check_output_paths
+from .items import WorkItem, check_output_paths, settings_digest
 
 DISPARITY_NAMES = ("disp0.pfm", "disp0.npy", "disp0.png")
 
@@ -122,7 +122,7 @@ def plan_items(inputs: list[str] | tuple[str, ...], output: str, *, calib: str |
             if summary:
                 outputs["summary"] = str(folder / "summary.json")
         items.append(WorkItem(name, inputs_, outputs, dict(options or {}), folder="" if single else str(out / name),
-                              command="triangulate"))
+                              command="triangulate", config_digest=settings_digest(dict(options or {}))))
     check_output_paths(items, None if single else out)
     return items, problems
 
