@@ -280,3 +280,46 @@ def test_a_lock_that_cannot_be_written_is_not_left_behind(tmp_path, scenes):
     assert again.returncode == 0, again.stderr
 
 
+# -- eval: ambiguous names, names that break rows -----------------------------------------------------
+
+def test_two_results_matching_one_scene_case_insensitively_are_an_error(run_cli, tmp_path, results, scenes):
+    res = tmp_path / "res"
+    shutil.copytree(results / "curved", res / "curved")
+    shutil.copytree(results / "planes", res / "Planes")
+    shutil.copytree(results / "planes", res / "PLANES")
+    r = run_cli("eval", res, scenes)
+    assert r.code == 3, r.err
+    assert "ambiguous result: 'PLANES' and 'Planes' both match 'planes'" in r.out + r.err
+    assert "without ground truth" not in r.out
+
+
+def test_two_gt_scenes_matching_a_result_case_insensitively_are_an_error(run_cli, tmp_path, results, scenes):
+    gt = tmp_path / "gt"
+    shutil.copytree(scenes / "planes", gt / "Planes")
+    shutil.copytree(scenes / "planes", gt / "PLANES")
+    r = run_cli("eval", results / "planes" / "disp0.pfm", gt)
+    assert r.code == 1, r.err
+    assert "ambiguous GT scene" in r.err and str(gt / "PLANES") in r.err and str(gt / "Planes") in r.err
+
+
+@pytest.mark.parametrize("fmt", ["text", "markdown"])
+def test_a_newline_in_a_scene_name_keeps_the_report_one_row_per_scene(run_cli, tmp_path, results, scenes, fmt):
+    gt, res = tmp_path / "gt", tmp_path / "res"
+    shutil.copytree(scenes / "curved", gt / "cur\nved")
+    shutil.copytree(scenes / "planes", gt / "planes")
+    shutil.copytree(results / "curved", res / "cur\nved")
+    shutil.copytree(results / "planes", res / "planes")
+    r = run_cli("eval", res, gt, "--format", fmt)
+    assert r.code == 0, r.err
+    rows = [line for line in r.out.splitlines() if "cur" in line]
+    assert rows and all("cur\\nved" in line for line in rows)
+    assert not [line for line in r.out.splitlines() if line.startswith("ved")]
+
+
+def test_eval_finds_results_under_their_sanitised_names(run_cli, tmp_path, results, scenes):
+    gt, res = tmp_path / "gt", tmp_path / "res"
+    shutil.copytree(scenes / "planes", gt / "run.json")
+    shutil.copytree(results / "planes", res / "_run.json")  # where match writes scene run.json
+    r = run_cli("eval", res, gt, "--format", "json")
+    assert r.code == 0, r.err
+    assert [s["name"] for s in r.json()["scenes"]] == ["run.json"]
