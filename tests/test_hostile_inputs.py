@@ -320,10 +320,9 @@ def test_sigkill_mid_overwrite_never_leaves_a_torn_pair(run_cli, tmp_path, scene
         assert not marker.exists() and (folder / "notes.txt").read_text() == "mine"
     resumed = run_cli("match", data, "-o", out, "-c", "default", "--skip-existing")
     assert resumed.code == 0, resumed.err
-    expected_skips = 1 if point == "staging" else 0
-    assert f"{1 - expected_skips} ok, {expected_skips} skipped" in resumed.err
+    assert "1 ok, 0 skipped" in resumed.err  # the old set was made with another config: redone
     params = json.loads((folder / "params.json").read_text())
-    assert params["config_sources"][-1].endswith(("fast.yaml",) if point == "staging" else ("default.yaml",))
+    assert params["config_sources"][-1].endswith("default.yaml")
     assert read_pfm(folder / "disp0.pfm").shape == (96, 128) and marker.is_file()
     assert_clean(out, ("planes",))
 

@@ -12,7 +12,7 @@ from typing import Callable
 import click
 
 from ..errors import EXIT_DATA
-from ..jobs.items import BatchResult, ItemResult, WorkItem, batch_exit_code
+from ..jobs.items import BatchResult, ItemResult, WorkItem, batch_exit_code, stale_reason
 from ..runinfo import RunRecord
 
 
@@ -28,30 +28,40 @@ def run_batch_command(command: str, items: list[WorkItem], item_fn: Callable[[Wo
     folder), start the run record, :func:`~stereocli.jobs.executors.run_batch` with
     ``batch_options``, then :func:`finish_batch` into ``outdir/run.json``.
     With ``outdir`` None (a single output file) there is no lock and no run record. Returns the
-    exit code and the batch's results."""
+    exit code and the batch's results. With ``skip_existing``, items whose earlier outputs are
+    stale are redone and said so (:func:`~stereocli.jobs.items.stale_reason`)."""
     from ..jobs.executors import run_batch
     from ..jobs.lock import output_lock
     from ..process import deferred_interrupts
 
     with output_lock(outdir) if outdir is not None else contextlib.nullcontext():
         record = RunRecord(command, argv(), config)
+        redone = {}
+        if batch_options.get("skip_existing"):
+            redone = {item.name: reason for item in items if (reason := stale_reason(item))}
         result = run_batch(items, item_fn, desc=command, verbose_errors=verbosity >= 2, **batch_options)
         with deferred_interrupts():  # a signal now waits until run.json is written
             code = finish_batch(result, record, None if outdir is None else Path(outdir) / "run.json", verbosity,
-                                extra_failures)
+                                extra_failures, redone)
     return code, result
 
 
 def finish_batch(result: BatchResult, record: RunRecord, record_path: Path | None, verbosity: int,
-                 extra_failures: list[ItemResult] = ()) -> int:
+                 extra_failures: list[ItemResult] = (), redone: dict[str, str] | None = None) -> int:
     """Write the run record, report failures on stderr, return the exit code.
 
+    ``redone`` maps the items ``--skip-existing`` ran again to why (their outputs were stale):
+    their run-record entries get ``redone``, and stderr a note each.
     0 when every item is ok or skipped; 3 when some items failed; when none succeeded, 2 if
     every failure was a usage/configuration error, else 1; 130/143 when interrupted.
     """
+    redone = redone or {}
     items = list(result.results) + list(extra_failures)
     for item in items:
-        record.add_item(item.as_dict())
+        entry = item.as_dict()
+        if item.status != "skipped" and item.name in redone:
+            entry["redone"] = redone[item.name]
+        record.add_item(entry)
     if result.interrupted:
         record.interrupted(signal.Signals(result.interrupted).name, (result.total or 0) + len(extra_failures))
     if record_path is not None:
@@ -59,6 +69,9 @@ def finish_batch(result: BatchResult, record: RunRecord, record_path: Path | Non
     failed = [i for i in items if i.status == "failed"]
     ok = [i for i in items if i.status == "ok"]
     if verbosity >= 0:
+        for item in items:
+            if item.status != "skipped" and item.name in redone:
+                click.echo(f"Note: {item.name}: stale outputs redone: {redone[item.name]}", err=True)
         for item in ok:
             if verbosity >= 1:
                 # What the stages found (e.g. row_align's fit), one line per stage: -v only.

@@ -117,7 +117,7 @@ def _rectify_uncalibrated(ctx, pairs, problems, outdir, *, interp, check, ndisp,
     from ..jobs.items import check_outputs, is_done
     from ..jobs.rectify import estimate_uncalibrated, plan_uncalibrated, rectify_uncalibrated_item
 
-    items = plan_uncalibrated(pairs, outdir, interpolation=interp, check=check, ndisp=ndisp)
+    items = plan_uncalibrated(pairs, outdir, interpolation=interp, check=check, ndisp=ndisp, per_pair=per_pair)
     if dry_run:
         print_json([i.as_dict() for i in items])
         return

@@ -384,7 +384,8 @@ def plan_folder(results_dir: str | os.PathLike, gt_dir: str | os.PathLike, optio
     """Pair every GT scene under ``gt_dir`` with the result of the same name in ``results_dir``.
 
     Exact names claim their results first; a case-insensitive match (Tsukuba vs tsukuba) only
-    takes a result no other scene claims exactly, so v2 "teddy" never scores MiddEval3 "Teddy".
+    takes a result no other scene claims exactly, so v2 "teddy" never scores MiddEval3 "Teddy";
+    a scene that several results match case-insensitively fails, naming them.
     """
     entries = ds.find_gt_scenes(Path(gt_dir), dataset=options.dataset)
     results = ds.find_results(Path(results_dir))
@@ -397,7 +398,12 @@ def plan_folder(results_dir: str | os.PathLike, gt_dir: str | os.PathLike, optio
         res = results.get(entry.name)
         if res is None:
             spare = {k: v for k, v in results.items() if k not in exact and k not in used}
-            res = ds.match_name(entry.name, spare)
+            try:
+                res = ds.match_name(entry.name, spare)
+            except DataError as exc:  # several candidates: this scene fails, the others go on
+                used.update(k for k in spare if k.casefold() == entry.name.casefold())
+                slots.append({"name": entry.name, "message": str(exc)})
+                continue
         if res is None:
             slots.append({"name": entry.name, "message": f"missing result (no {entry.name}/disp0*.pfm or "
                                                          f"{entry.name}.pfm in {results_dir})"})
@@ -524,9 +530,12 @@ def evaluate(
         # A folder of scenes: pick the one named like the result (its folder or file stem).
         entries = ds.find_gt_scenes(ground_truth, dataset=options.dataset)
         name = pair_file.parent.name if pair_file.name.startswith("disp0") else pair_file.stem
-        match = [e for e in entries if e.name == name] or [e for e in entries if e.name.lower() == name.lower()]
+        match = [e for e in entries if e.name == name] or [e for e in entries if e.name.casefold() == name.casefold()]
         if not match:
             raise DataError(f"{pair_file}: no GT scene named {name!r} under {ground_truth}")
+        if len(match) > 1:
+            raise DataError(f"{pair_file}: ambiguous GT scene: {' and '.join(str(e.path) for e in match)} both match "
+                            f"{name!r} (names compared without case); give the scene folder itself")
         scene = ds.load_entry(match[0], gt_scale=options.gt_scale, resolution=options.scene_resolution())
     result = evaluate_pair(pair_file, scene, options=options, time=ds.read_time(time_path))
     failures = [{"name": result.name, "message": e, "partial": "true"} for e in result.errors]

@@ -397,11 +397,21 @@ def find_results(results_dir: Path) -> dict[str, ResultEntry]:
 
 
 def match_name(name: str, results: dict[str, ResultEntry]) -> ResultEntry | None:
-    """Exact name first, then case-insensitive (``Tsukuba`` results for ``tsukuba`` GT)."""
-    if name in results:
-        return results[name]
-    lower = {k.lower(): v for k, v in results.items()}
-    return lower.get(name.lower())
+    """The result of GT scene ``name``: exact name first (or the name ``match`` gives its
+    outputs, :func:`~stereocli.io.pairs.output_name`), then case-insensitive (``Tsukuba``
+    results for ``tsukuba`` GT). Raises :class:`DataError` naming the candidates when several
+    results match only case-insensitively."""
+    from ..io.pairs import output_name
+
+    for key in dict.fromkeys((name, output_name(name))):
+        if key in results:
+            return results[key]
+    wanted = {name.casefold(), output_name(name).casefold()}
+    found = [k for k in results if k.casefold() in wanted]
+    if len(found) > 1:
+        raise DataError(f"ambiguous result: {' and '.join(repr(k) for k in found)} both match {name!r} "
+                        "(names compared without case); rename or remove all but one")
+    return results[found[0]] if found else None
 
 
 def read_time(path: Path | None) -> float | None:

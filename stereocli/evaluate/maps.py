@@ -14,6 +14,7 @@ import numpy as np
 
 from ..errors import check_outputs_free
 from ..io.images import read_image, write_image
+from ..io.pairs import output_name
 from ..viz import colorize_disparity, colorize_error, gray_preview, legend_bar, with_legend
 from .api import EvalReport, SceneResult
 from .metrics import KITTI_ABS_THRESH, KITTI_REL_THRESH, abs_error
@@ -106,15 +107,16 @@ def scene_images(result: SceneResult, thresholds: tuple[float, ...]) -> dict[str
 
 
 def write_error_maps(report: EvalReport, out_dir: str | Path, *, overwrite: bool = False) -> list[Path]:
-    """Write ``OUT/<scene>/{disparity,gt,error,bad}.png`` for every scored scene."""
+    """Write ``OUT/<scene>/{disparity,gt,error,bad}.png`` for every scored scene (``<scene>``
+    made safe as ``match`` makes its output names, :func:`~stereocli.io.pairs.output_name`)."""
     out_dir = Path(out_dir)
-    targets = [out_dir / s.name / f for s in report.scenes for f in MAP_FILES]
+    targets = [out_dir / output_name(s.name) / f for s in report.scenes for f in MAP_FILES]
     check_outputs_free(targets, overwrite=overwrite)
     written = []
     for s in report.scenes:
         imgs = scene_images(s, report.thresholds)
         for key, fname in zip(("estimate", "gt", "error", "bad"), MAP_FILES):
-            path = out_dir / s.name / fname
+            path = out_dir / output_name(s.name) / fname
             write_image(path, imgs[key])
             written.append(path)
     return written

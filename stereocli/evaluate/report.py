@@ -1,4 +1,9 @@
-"""Report formatting: text (default, greppable header row), JSON, CSV and Markdown tables."""
+"""Report formatting: text (default, greppable header row), JSON, CSV and Markdown tables.
+
+Text and Markdown show the control characters of scene names and messages escaped (a newline
+as ``\\n``), so every scene stays one row; Markdown also escapes ``|``. CSV quotes such fields and
+JSON keeps them as they are.
+"""
 
 from __future__ import annotations
 
@@ -7,6 +12,7 @@ import io
 import json
 import math
 import textwrap
+import unicodedata
 from typing import Any
 
 from .api import EvalReport
@@ -30,6 +36,16 @@ def metric_columns(report: EvalReport) -> list[str]:
     return [c for c in cols if c in present]
 
 
+def _printable(text: str) -> str:
+    """``text`` with control characters and line separators escaped (``\\n``, ``\\x1b``): one line."""
+    return "".join(c.encode("unicode_escape").decode("ascii") if unicodedata.category(c) in ("Cc", "Zl", "Zp") else c
+                   for c in text)
+
+
+def _markdown_cell(text: str) -> str:
+    return _printable(text).replace("|", "\\|")
+
+
 def _has_time(report: EvalReport) -> bool:
     return any(s.time is not None for s in report.scenes)
 
@@ -49,7 +65,7 @@ def _rows(report: EvalReport, region: str, cols: list[str], with_time: bool) -> 
         cells = [f"{s.weight:g}"] + [_fmt(None if m is None else m.get(c), c) for c in cols]
         if with_time:
             cells += [_fmt(getattr(s, k), k) for k, _ in _TIME_COLS]
-        rows.append((s.name, cells))
+        rows.append((_printable(s.name), cells))
     if report.scenes:
         avg = report.average
         m = avg.get(region)
@@ -78,10 +94,10 @@ def format_text(report: EvalReport) -> str:
         for name, cells in rows:
             lines.append("  ".join([name.ljust(name_w)] + [c.rjust(w) for c, w in zip(cells, widths)]))
     for note in report.notes:
-        lines.append(f"# note: {note}")
+        lines.append(f"# note: {_printable(note)}")
     for f in report.failures:
         tag = "ERROR" if f.get("partial") else "FAILED"
-        lines.append(f"# {tag} {f['name']}: {f['message']}")
+        lines.append(f"# {tag} {_printable(f['name'])}: {_printable(f['message'])}")
     return "\n".join(lines) + "\n"
 
 
@@ -139,13 +155,14 @@ def format_markdown(report: EvalReport) -> str:
         lines.append("| " + " | ".join(header) + " |")
         lines.append("|" + "|".join(["---"] + ["---:"] * (len(header) - 1)) + "|")
         for name, cells in _rows(report, region, cols, with_time):
-            lines.append("| " + " | ".join([name] + cells) + " |")
+            lines.append("| " + " | ".join([name.replace("|", "\\|")] + cells) + " |")
     if report.notes or report.failures:
         lines.append("")
     for note in report.notes:
-        lines.append(f"- note: {note}")
+        lines.append(f"- note: {_printable(note)}")
     for f in report.failures:
-        lines.append(f"- **{'error' if f.get('partial') else 'failed'}** {f['name']}: {f['message']}")
+        lines.append(f"- **{'error' if f.get('partial') else 'failed'}** {_markdown_cell(f['name'])}: "
+                     f"{_printable(f['message'])}")
     return "\n".join(lines) + "\n"
 
 

@@ -19,6 +19,8 @@ Accepted forms (mixed freely):
 
 Files that cannot be paired are returned as problems (the caller reports them as failed
 items), never dropped silently; calibration photos without a partner are an error.
+
+A pair's name is its output folder's name (``OUTDIR/<name>/``), made safe by :func:`output_name`.
 """
 
 from __future__ import annotations
@@ -29,6 +31,13 @@ from pathlib import Path
 
 from ..errors import DataError
 from .images import IMAGE_SUFFIXES
+
+#: Names a batch keeps for itself in its output folder: the run record. (Its lock, staging folder
+#: and completion markers start with a dot, which no output name does.)
+RESERVED_NAMES = ("run.json",)
+#: Characters an output name never holds: path separators and control characters (line breaks
+#: included), which would break paths, one-line messages and text tables.
+_UNSAFE = re.compile(r"[/\\\x00-\x1f\x7f-\x9f\u2028\u2029]")
 
 #: Known (left, right) file stems inside a scene folder, in priority order.
 SCENE_PAIRS = (("im0", "im1"), ("im2", "im6"), ("im3", "im4"), ("left", "right"), ("view1", "view5"))
@@ -45,6 +54,31 @@ class StereoInput:
     left_valid: str | None = None  # valid-pixel mask (255 = valid) from rectify
     right_valid: str | None = None
     folder: str | None = None  # the scene folder, when the pair came from one
+
+
+def output_name(name: str) -> str:
+    """``name`` made safe as one folder name inside an output folder: path separators and
+    control characters become ``_``, and so do leading dots (no ``.``, ``..`` or hidden name,
+    which could land outside OUTDIR, in its root, or on the batch's own dot-files); an empty
+    name becomes ``_`` and a reserved one (:data:`RESERVED_NAMES`) gets a leading ``_``.
+    Other names are kept as they are (``...`` -> ``___``, ``run.json`` -> ``_run.json``)."""
+    safe = _UNSAFE.sub("_", name)
+    stripped = safe.lstrip(".")
+    safe = "_" * (len(safe) - len(stripped)) + stripped
+    if not safe:
+        return "_"
+    return f"_{safe}" if safe.casefold() in RESERVED_NAMES else safe
+
+
+def unique_names(named: list[tuple[str, str]]) -> None:
+    """Raise :class:`DataError` when two of ``(name, source)`` share a name (their outputs
+    would clash in ``OUTDIR/<name>/``), naming both sources."""
+    seen: dict[str, str] = {}
+    for name, source in named:
+        if name in seen:
+            raise DataError(f"two inputs are both named {name!r} ({seen[name]} and {source}); "
+                            "their outputs would clash")
+        seen[name] = source
 
 
 def image_files(folder: Path) -> list[Path]:
@@ -186,22 +220,22 @@ def discover_pairs(inputs: list[str] | tuple[str, ...], *,
     """Resolve command-line inputs into stereo pairs.
 
     Returns ``(pairs, problems)``; raises :class:`DataError` when an input does not exist or
-    nothing at all can be paired. Pair names are unique (a clash is an error, since outputs
-    are written to ``OUTDIR/<name>/``). With ``side_words``, folders holding only
-    ``left*``/``right*`` photos are paired as calibration photos (listed first).
+    nothing at all can be paired. Pair names are made safe (:func:`output_name`) and unique (a
+    clash is an error, since outputs are written to ``OUTDIR/<name>/``). With ``side_words``,
+    folders holding only ``left*``/``right*`` photos are paired as calibration photos (listed
+    first).
     """
     if side_words:
         pairs: list[StereoInput] = []
         rest = []
         for raw in inputs:
             if _is_side_word_folder(Path(raw)):
-                pairs += [StereoInput(name=name, left=left, right=right)
+                pairs += [StereoInput(name=output_name(name), left=left, right=right)
                           for name, left, right in find_calibration_pairs(raw)]
             else:
                 rest.append(raw)
-        if not rest:
-            return pairs, []
-        found, problems = discover_pairs(rest)
+        found, problems = discover_pairs(rest) if rest else ([], [])
+        unique_names([(pair.name, pair.left) for pair in pairs + found])
         return pairs + found, problems
     paths = [Path(p) for p in inputs]
     for p in paths:
@@ -230,11 +264,9 @@ def discover_pairs(inputs: list[str] | tuple[str, ...], *,
             f"{', '.join(map(str, inputs))}: no stereo pairs found"
             + (f" ({problems[0]})" if problems else " (expected im0/im1 scene folders, left/ + right/ folders or image pairs)")
         )
-    seen: dict[str, str] = {}
     for pair in pairs:
-        if pair.name in seen:
-            raise DataError(f"two pairs are both named {pair.name!r} ({seen[pair.name]} and {pair.left}); outputs would clash")
-        seen[pair.name] = pair.left
+        pair.name = output_name(pair.name)
+    unique_names([(pair.name, pair.left) for pair in pairs])
     return pairs, problems
 
 

@@ -11,12 +11,17 @@ folder, and only when it succeeds are they moved into place, with a completion m
 outputs is replaced whole by one rename, so a reader (or a kill) sees the old set, no folder, or
 the new set; a folder shared with other files (e.g. ``match`` writing beside ``rectify``'s
 images) gets its files replaced one by one, marker removed first and written last.
-``--skip-existing`` counts an item done only when its marker and every output exist.
+The marker also records what made the item (:func:`marker_matches`): the stereocli ``version``,
+a digest of the settings that change its outputs (``config``, from :attr:`WorkItem.config_digest`)
+and the size and modification time of each input (``inputs``). ``--skip-existing`` counts an
+item done only when its marker and every output exist and the marker matches; it redoes the
+others (:func:`stale_reason` says why).
 """
 
 from __future__ import annotations
 
 import glob
+import hashlib
 import json
 import os
 import shutil
@@ -27,7 +32,8 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable
 
-from ..errors import EXIT_DATA, EXIT_OK, EXIT_PARTIAL, EXIT_USAGE, StereoError, check_outputs_free
+from .. import __version__
+from ..errors import EXIT_DATA, EXIT_OK, EXIT_PARTIAL, EXIT_USAGE, ConfigError, StereoError, check_outputs_free
 from ..io.atomic import plain_mode, write_text
 
 RESUME_HINT = "use --overwrite to replace or --skip-existing to resume"
@@ -42,7 +48,8 @@ class WorkItem:
     ``folder`` is the item's own output folder (its outputs are committed together and marked
     complete with ``.stereocli-<command>.done``, which records ``run_id``); ``error`` is set when
     planning the item failed: it fails with that message and exit code ``error_code``, without
-    running.
+    running. ``config_digest`` (:func:`settings_digest`) covers the settings that change the
+    item's outputs; its marker records it.
     """
 
     name: str
@@ -54,6 +61,7 @@ class WorkItem:
     error: str = ""
     error_code: int = EXIT_DATA
     run_id: str = ""
+    config_digest: str = ""
 
     def existing_outputs(self) -> list[str]:
         return [p for p in self.outputs.values() if Path(p).exists()]
@@ -144,10 +152,108 @@ def check_outputs(items: list[WorkItem], *, overwrite: bool, skip_existing: bool
 
 def is_done(item: WorkItem) -> bool:
     """True when every output of ``item`` exists, and for an item with a folder its completion
-    marker too (``--skip-existing`` skips it)."""
+    marker too, recording what this run would make the item from (:func:`marker_matches`):
+    ``--skip-existing`` skips it."""
     if not item.outputs or len(item.existing_outputs()) != len(item.outputs):
         return False
-    return item.marker is None or item.marker.is_file()
+    return item.marker is None or marker_matches(item)[0]
+
+
+def settings_digest(settings: dict[str, Any]) -> str:
+    """A short digest (16 hex digits) of ``settings``, the JSON-able settings that change an
+    item's outputs (never jobs, threads or progress): :attr:`WorkItem.config_digest`."""
+    text = json.dumps(settings, sort_keys=True, separators=(",", ":"), default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def input_stamps(inputs: dict[str, str]) -> dict[str, list[int] | None]:
+    """``{key: [size in bytes, modification time in ns]}`` of each input path (None when it
+    cannot be read): what a completion marker records of the inputs."""
+    stamps: dict[str, list[int] | None] = {}
+    for key, path in inputs.items():
+        try:
+            st = os.stat(path)
+        except OSError:
+            stamps[key] = None
+            continue
+        stamps[key] = [st.st_size, st.st_mtime_ns]
+    return stamps
+
+
+def marker_matches(item: WorkItem) -> tuple[bool, str]:
+    """Whether ``item``'s completion marker records what this process would make the item
+    from: this stereocli version, ``item.config_digest`` and inputs of the same size and
+    modification time. Returns ``(True, "")``, or ``(False, reason)`` with a short phrase.
+    An item without a folder keeps no marker: ``(True, "")``."""
+    marker = item.marker
+    if marker is None:
+        return True, ""
+    try:
+        data = json.loads(marker.read_text())
+    except FileNotFoundError:
+        return False, "no completion marker"
+    except (OSError, ValueError):
+        return False, f"unreadable completion marker {marker.name}"
+    if not isinstance(data, dict) or not all(k in data for k in ("version", "config", "inputs")):
+        return False, "its marker records no settings or inputs (an older stereocli made it)"
+    if data["version"] != __version__:
+        return False, f"made by stereocli {data['version']} (this is {__version__})"
+    if data["config"] != item.config_digest:
+        return False, "made with other settings (config or options)"
+    recorded = data["inputs"] if isinstance(data["inputs"], dict) else {}
+    for key, stamp in input_stamps(item.inputs).items():
+        if key not in recorded:
+            return False, f"made without the {key} input {item.inputs[key]}"
+        if recorded[key] != stamp:
+            return False, f"the {key} input {item.inputs[key]} changed since (size or modification time)"
+    extra = sorted(set(recorded) - set(item.inputs))
+    if extra:
+        return False, f"made with a {extra[0]} input too"
+    return True, ""
+
+
+def stale_reason(item: WorkItem) -> str:
+    """Why ``--skip-existing`` redoes ``item`` although an earlier run left outputs of it
+    (the marker does not match, or some outputs are missing); ``""`` when it skips the item,
+    when nothing of it exists yet, and for items whose planning failed."""
+    if item.error or not item.outputs:
+        return ""
+    existing = item.existing_outputs()
+    marked = item.marker is not None and os.path.lexists(item.marker)
+    if not existing and not marked:
+        return ""
+    if len(existing) != len(item.outputs):
+        missing = next(p for p in item.outputs.values() if p not in existing)
+        return f"{Path(missing).name} is missing"
+    return marker_matches(item)[1]
+
+
+def check_output_paths(items: list[WorkItem], outdir: str | os.PathLike | None = None) -> None:
+    """Refuse a plan that writes where it must not, before any work: an output that is (once
+    resolved) an input of any item, and with ``outdir`` an output outside it once resolved
+    (a symbolic link), or in the place of the batch's own files (run record, lock, staging
+    folder, markers). Raises :class:`~stereocli.errors.ConfigError` naming the item and path."""
+    from ..io.pairs import RESERVED_NAMES
+    from .lock import LOCK_NAME
+
+    inputs = {os.path.realpath(path): path for item in items for path in item.inputs.values()}
+    root = os.path.realpath(outdir) if outdir is not None else None
+    for item in items:
+        for out in item.outputs.values() if not item.error else ():
+            real = os.path.realpath(out)
+            if real in inputs:
+                raise ConfigError(f"{item.name}: its output {out} would replace the input {inputs[real]}; "
+                                  "write to an output folder that holds no inputs")
+            if root is None:
+                continue
+            first = os.path.relpath(real, root).split(os.sep)[0]
+            if first in ("..", ".") or os.path.isabs(first):
+                raise ConfigError(f"{item.name}: its output {out} resolves to {real}, outside the output folder "
+                                  f"{outdir}")
+            if first in (*RESERVED_NAMES, STAGING, LOCK_NAME) or (first.startswith(".stereocli-")
+                                                                   and first.endswith(".done")):
+                raise ConfigError(f"{item.name}: its output {out} takes the place of {first}, which the batch "
+                                  "keeps for itself")
 
 
 def finished_in_run(item: WorkItem) -> bool:
@@ -177,10 +283,11 @@ def run_one(item_fn: Callable[[WorkItem], dict], item: WorkItem, verbose_errors:
     status, message, code = "ok", "", EXIT_OK
     try:
         dead = remove_temporaries(item)  # left by attempts whose process died (killed worker, earlier run)
+        stamps = input_stamps(item.inputs)  # the inputs as this attempt reads them, for the marker
         staged, stage = _stage(item)
         details = item_fn(staged) or {}
         if stage is not None:
-            _commit(item, stage)
+            _commit(item, stage, stamps)
     except StereoError as exc:
         _reraise_interrupt(exc)
         status, message, code = "failed", str(exc), exc.exit_code
@@ -256,13 +363,14 @@ def _stage(item: WorkItem) -> tuple[WorkItem, Path | None]:
     return replace(item, outputs={k: str(stage / Path(p).name) for k, p in item.outputs.items()}), stage
 
 
-def _commit(item: WorkItem, stage: Path) -> None:
-    """Move the staged outputs of ``item`` into place (signals wait until it is done)."""
+def _commit(item: WorkItem, stage: Path, stamps: dict | None = None) -> None:
+    """Move the staged outputs of ``item`` into place (signals wait until it is done); ``stamps``
+    (:func:`input_stamps`) go into its marker."""
     from ..process import deferred_interrupts
 
     with deferred_interrupts():
         if item.folder:
-            _commit_folder(item, stage)
+            _commit_folder(item, stage, input_stamps(item.inputs) if stamps is None else stamps)
         else:
             for final in item.outputs.values():
                 src = stage / Path(final).name
@@ -280,11 +388,13 @@ def _marker_outputs(marker: Path) -> list[str]:
     return [n for n in names if isinstance(n, str) and "/" not in n and n not in ("", ".", "..")]
 
 
-def _commit_folder(item: WorkItem, stage: Path) -> None:
+def _commit_folder(item: WorkItem, stage: Path, stamps: dict) -> None:
     folder, marker = Path(item.folder), item.marker
     written = sorted(p.name for p in stage.iterdir())
     write_text(stage / marker.name, json.dumps({"command": item.command, "outputs": written, "run": item.run_id,
-                                                "finished": time.strftime("%Y-%m-%dT%H:%M:%S%z")}) + "\n")
+                                                "finished": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+                                                "version": __version__, "config": item.config_digest,
+                                                "inputs": stamps}) + "\n")
     if not os.path.lexists(folder):
         folder.parent.mkdir(parents=True, exist_ok=True)
         os.rename(stage, folder)

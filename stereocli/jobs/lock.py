@@ -3,8 +3,9 @@
 ``OUTDIR/.stereocli.lock`` is created exclusively when a batch starts and removed when it ends.
 A second run into the same folder stops at once with :class:`~stereocli.errors.OutputLockedError`
 (exit 1) naming the owner. A lock left by a run that died (its pid is gone on this host, or now
-belongs to a process started later) is stale and taken over; a lock from another host is
-never second-guessed (delete it by hand if that run is gone).
+belongs to a process started later) is stale and taken over, and so is a dangling symbolic link
+in its place; a lock from another host is never second-guessed (delete it by hand if that run
+is gone). A lock that cannot be written whole (a full disk) is removed again, with an error.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ import time
 from pathlib import Path
 from typing import Iterator
 
-from ..errors import OutputLockedError
+from ..errors import DataError, OutputLockedError
 
 LOCK_NAME = ".stereocli.lock"
 #: A lock file still empty after this long was left by a run killed while creating it.
@@ -50,11 +51,12 @@ def _owner_info() -> dict:
 
 
 def _read(path: Path) -> dict | None:
-    """The lock's owner, ``{}`` when the file is empty or unreadable, None when it is gone."""
+    """The lock's owner, ``{}`` when the file is empty or unreadable, None when it is gone
+    (a dangling symbolic link is ``{"dangling": True}``)."""
     try:
         text = path.read_text()
     except FileNotFoundError:
-        return None
+        return {"dangling": True} if path.is_symlink() else None
     except OSError:
         return {}
     try:
@@ -65,6 +67,8 @@ def _read(path: Path) -> dict | None:
 
 
 def _is_stale(path: Path, owner: dict) -> bool:
+    if owner.get("dangling"):  # a link to nothing: no run holds it
+        return True
     if not owner:  # empty: being written right now, or its writer was killed
         try:
             return time.time() - path.stat().st_mtime > EMPTY_STALE_SECONDS
@@ -136,9 +140,21 @@ def _acquire(folder: Path, path: Path, mine: dict) -> None:
             aside.unlink(missing_ok=True)
             continue
         try:
-            os.write(fd, data)
+            _write_all(fd, data)
             os.fsync(fd)
-        finally:
+        except BaseException as exc:
             os.close(fd)
+            path.unlink(missing_ok=True)  # an empty or torn lock would hold off every run
+            if isinstance(exc, OSError):
+                raise DataError(f"{path}: cannot write the lock file ({exc.strerror or exc})") from None
+            raise
+        os.close(fd)
         return
     raise OutputLockedError(_describe(folder, _read(path) or {}))
+
+
+def _write_all(fd: int, data: bytes) -> None:
+    """Write all of ``data`` (a write may take only part of it, e.g. at a file-size limit)."""
+    view = memoryview(data)
+    while view:
+        view = view[os.write(fd, view):]

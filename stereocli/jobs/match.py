@@ -39,7 +39,7 @@ import numpy as np
 from ..errors import ConfigError, DataError, StereoError
 from ..io.atomic import write_text
 from ..io.pairs import StereoInput
-from .items import WorkItem, label_message, prepare_worker
+from .items import WorkItem, check_output_paths, label_message, prepare_worker, settings_digest
 
 if TYPE_CHECKING:
     from ..match.pipeline import PreparedPair, StripMap, StripResult
@@ -136,10 +136,21 @@ def plan_items(
                    "vmin": info.get("vmin"), "vmax": info.get("vmax"), "record": record_info or {}}
         if split_strips:
             options["split_strips"] = True
-        items.append(WorkItem(pair.name, inputs, outputs, options, folder=str(folder), command="match"))
+        items.append(WorkItem(pair.name, inputs, outputs, options, folder=str(folder), command="match",
+                              config_digest=settings_digest(_output_settings(options))))
         if error is not None:
             items[-1].error, items[-1].error_code = label_message(pair.name, str(error)), error.exit_code
+    check_output_paths(items, outdir)
     return items
+
+
+def _output_settings(options: dict) -> dict:
+    """The options of a match item that change its outputs: not the run record's extras, the
+    kernel threads, nor ``split_strips`` (strips on the cluster stitch to the same bytes)."""
+    settings = {k: v for k, v in options.items() if k not in ("record", "split_strips")}
+    config = dict(settings["config"])
+    config["runtime"] = {k: v for k, v in config.get("runtime", {}).items() if k != "threads"}
+    return {**settings, "config": config}
 
 
 def _config(config: dict):

@@ -19,7 +19,7 @@ from pathlib import Path
 
 from ..errors import DataError
 from ..io.pairs import StereoInput
-from .items import WorkItem
+from .items import WorkItem, check_output_paths, input_stamps, settings_digest
 
 _MAPS_CACHE: dict = {}
 
@@ -29,13 +29,15 @@ def plan_items(pairs: list[StereoInput], outdir: str | Path, *, calib_path: str,
                ndisp: int | None = None, min_depth: float | None = None) -> list[WorkItem]:
     """One :class:`WorkItem` per pair; ``size`` is the rectified (width, height)."""
     items = []
+    options = {"alpha": alpha, "size": list(size) if size else None, "interpolation": interpolation, "ndisp": ndisp,
+               "min_depth": min_depth}
     for pair in pairs:
         out = Path(outdir) / pair.name
         outputs = _outputs(out, check)
         items.append(WorkItem(pair.name, {"left": pair.left, "right": pair.right, "calibration": str(calib_path)},
-                              outputs, {"alpha": alpha, "size": list(size) if size else None,
-                                        "interpolation": interpolation, "ndisp": ndisp, "min_depth": min_depth},
-                              folder=str(out), command="rectify"))
+                              outputs, dict(options), folder=str(out), command="rectify",
+                              config_digest=settings_digest(options)))
+    check_output_paths(items, outdir)
     return items
 
 
@@ -128,14 +130,20 @@ RIG_DY_WARNING = 1.0
 
 
 def plan_uncalibrated(pairs: list[StereoInput], outdir: str | Path, *, interpolation: str = "linear",
-                      check: bool = False, ndisp: int | None = None) -> list[WorkItem]:
+                      check: bool = False, ndisp: int | None = None, per_pair: bool = False) -> list[WorkItem]:
     """One :class:`WorkItem` per pair for ``rectify --uncalibrated``; :func:`estimate_uncalibrated`
-    adds the homographies to their options."""
-    return [WorkItem(pair.name, {"left": pair.left, "right": pair.right},
-                     _outputs(Path(outdir) / pair.name, check, "rectification.json"),
-                     {"uncalibrated": True, "interpolation": interpolation, "ndisp": ndisp},
-                     folder=str(Path(outdir) / pair.name), command="rectify")
-            for pair in pairs]
+    adds the homographies to their options. With one estimate for the whole rig (not
+    ``per_pair``), every pair's outputs depend on every pair's images: each item's settings
+    digest covers them all."""
+    options = {"uncalibrated": True, "interpolation": interpolation, "ndisp": ndisp}
+    rig = None if per_pair else [[pair.name, input_stamps({"left": pair.left, "right": pair.right})] for pair in pairs]
+    items = [WorkItem(pair.name, {"left": pair.left, "right": pair.right},
+                      _outputs(Path(outdir) / pair.name, check, "rectification.json"), dict(options),
+                      folder=str(Path(outdir) / pair.name), command="rectify",
+                      config_digest=settings_digest({**options, "per_pair": per_pair, "rig": rig}))
+             for pair in pairs]
+    check_output_paths(items, outdir)
+    return items
 
 
 class _PairImages:

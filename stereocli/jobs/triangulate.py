@@ -9,7 +9,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import DataError
-from .items import WorkItem
+from ..io.pairs import output_name, unique_names
+from .items import WorkItem, check_output_paths, settings_digest
 
 DISPARITY_NAMES = ("disp0.pfm", "disp0.npy", "disp0.png")
 
@@ -42,11 +43,11 @@ def _find_inputs(inputs: list[str] | tuple[str, ...]) -> tuple[list[tuple[str, P
     for raw in inputs:
         p = Path(raw)
         if p.is_file():
-            found.append((p.parent.name if p.stem.startswith("disp0") else p.stem, p))
+            found.append((p.resolve().parent.name if p.stem.startswith("disp0") else p.stem, p))
         elif p.is_dir():
             d = find_disparity(p)
             if d is not None:
-                found.append((p.name, d))
+                found.append((p.resolve().name, d))
                 continue
             subs = sorted(x for x in p.iterdir() if x.is_dir() and not x.name.startswith("."))
             for sub in subs:
@@ -59,6 +60,8 @@ def _find_inputs(inputs: list[str] | tuple[str, ...]) -> tuple[list[tuple[str, P
                 raise DataError(f"{p}: no disparity file (disp0.pfm, disp0*.pfm, disp0.npy, disp0.png)")
         else:
             raise DataError(f"{p}: no such file or folder")
+    found = [(output_name(name), path) for name, path in found]
+    unique_names([(name, str(path)) for name, path in found])
     return found, problems
 
 
@@ -119,7 +122,8 @@ def plan_items(inputs: list[str] | tuple[str, ...], output: str, *, calib: str |
             if summary:
                 outputs["summary"] = str(folder / "summary.json")
         items.append(WorkItem(name, inputs_, outputs, dict(options or {}), folder="" if single else str(out / name),
-                              command="triangulate"))
+                              command="triangulate", config_digest=settings_digest(dict(options or {}))))
+    check_output_paths(items, None if single else out)
     return items, problems
 
 
