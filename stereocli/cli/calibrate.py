@@ -10,7 +10,7 @@ import click
 
 from . import options
 from ..errors import ConfigError as usage_error  # one-line message, exit 2
-from ..errors import check_outputs_free
+from ..errors import check_outputs_free, excerpt
 
 _SQUARE = re.compile(r"^\s*([0-9]*\.?[0-9]+(?:[eE][-+]?\d+)?)\s*([a-zA-Zµ]*)\s*$")
 
@@ -18,10 +18,10 @@ _SQUARE = re.compile(r"^\s*([0-9]*\.?[0-9]+(?:[eE][-+]?\d+)?)\s*([a-zA-Zµ]*)\s*
 def _square(text: str, units: str | None) -> tuple[float, str]:
     m = _SQUARE.match(text)
     if not m:
-        raise usage_error(f"--square {text!r}: expected a length like 25mm, 0.025m or 1")
+        raise usage_error(f"--square {excerpt(text, quote=True)}: expected a length like 25mm, 0.025m or 1")
     value, unit = float(m.group(1)), m.group(2) or units or "unit"
     if units and m.group(2) and units != m.group(2):
-        raise usage_error(f"--square {text!r} and --units {units!r} disagree")
+        raise usage_error(f"--square {excerpt(text, quote=True)} and --units {excerpt(units, quote=True)} disagree")
     if value <= 0:
         raise usage_error("--square must be positive")
     return value, unit
