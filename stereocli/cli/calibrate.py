@@ -114,6 +114,12 @@ def calibrate_cmd(ctx, input_dir, output, pattern_text, square_text, units, patt
         output = output.with_name(output.name + ".yaml")
     cols, rows = parse_pattern_size(pattern_text)
     square, unit = _square(square_text, units)
+    if fmt == "ros":
+        from ..io.calib import UNIT_SCALE
+
+        if unit not in UNIT_SCALE:  # refused now, not after detecting every image
+            raise usage_error(f"--to ros: ROS camera_info is in metres; give --square a length unit, e.g. 25mm "
+                              f"or 0.025m (known: {', '.join(UNIT_SCALE)})")
     pattern = Pattern(cols, rows, square, pattern_type, unit, marker_size, dictionary)
     opts = CalibOptions(fix_principal_point=fix_principal_point, zero_tangent=zero_tangent, fix_aspect=fix_aspect,
                         fix_k3=fix_k3, rational=rational, fisheye=fisheye, same_focal=same_focal, joint=joint,
