@@ -55,11 +55,14 @@ def preset_names() -> list[str]:
 def resolve_config_path(name_or_path: str) -> Path:
     """A path to an existing YAML file, or the name of a bundled preset (``fast``)."""
     path = Path(name_or_path)
-    if path.is_file():
-        return path
     preset = preset_dir() / f"{name_or_path}.yaml"
-    if not path.suffix and preset.is_file():
-        return preset
+    try:
+        if path.is_file():
+            return path
+        if not path.suffix and preset.is_file():
+            return preset
+    except OSError:  # a name too long to be a file's
+        pass
     names = preset_names()
     raise ConfigError(
         f"{excerpt(name_or_path)}: no such config file or preset; presets: {', '.join(names)}"

@@ -99,7 +99,11 @@ def _short_values(message: str) -> str:
     """``message`` with every run of non-blank characters longer than any path shortened to an
     :func:`~stereocli.errors.excerpt`: the last guard for values no error site shortened itself
     (Click quotes an option's value whole; an OS error names a file name too long to exist)."""
-    return re.sub(r"\S{%d,}" % (_LONGEST_PATH + 1), lambda m: excerpt(m.group()), message)
+    def shorten(match: re.Match) -> str:
+        value = match.group()
+        return excerpt(value.rstrip(":")) + (":" if value.endswith(":") else "")
+
+    return re.sub(r"\S{%d,}" % (_LONGEST_PATH + 1), shorten, message)
 
 
 def _interrupted(exc: KeyboardInterrupt) -> int:
