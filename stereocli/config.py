@@ -25,7 +25,7 @@ from typing import Any
 
 import yaml
 
-from .errors import ConfigError, did_you_mean
+from .errors import ConfigError, did_you_mean, excerpt
 
 SINGLE_SECTIONS = ("cost", "optimizer")
 LIST_SECTIONS = ("preprocess", "aggregation", "refinement")
@@ -55,14 +55,17 @@ def preset_names() -> list[str]:
 def resolve_config_path(name_or_path: str) -> Path:
     """A path to an existing YAML file, or the name of a bundled preset (``fast``)."""
     path = Path(name_or_path)
-    if path.is_file():
-        return path
     preset = preset_dir() / f"{name_or_path}.yaml"
-    if not path.suffix and preset.is_file():
-        return preset
+    try:
+        if path.is_file():
+            return path
+        if not path.suffix and preset.is_file():
+            return preset
+    except OSError:  # a name too long to be a file's
+        pass
     names = preset_names()
     raise ConfigError(
-        f"{name_or_path}: no such config file or preset; presets: {', '.join(names)}"
+        f"{excerpt(name_or_path)}: no such config file or preset; presets: {', '.join(names)}"
         + did_you_mean(name_or_path, names)
     )
 
@@ -84,6 +87,9 @@ def check_yaml_limits(text: str, where: str) -> None:
     """
     if len(text) > YAML_MAX_BYTES:
         raise ConfigError(f"{where}: {len(text)} characters; a config is at most {YAML_MAX_BYTES // 1024} KiB")
+    deep = _flow_too_deep(text)
+    if deep is not None:
+        raise ConfigError(f"{where}: line {deep}: nested deeper than {YAML_MAX_DEPTH} levels; not a config")
     loader_cls = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
     loader = loader_cls(text)
     sizes: dict[str, int] = {}  # anchor -> number of values its node stands for
@@ -116,6 +122,43 @@ def check_yaml_limits(text: str, where: str) -> None:
         loader.dispose()
 
 
+def _flow_too_deep(text: str) -> int | None:
+    """The line (1-based) where ``[``/``{`` collections first nest deeper than :data:`YAML_MAX_DEPTH`,
+    or None; quoted scalars and comments are skipped.
+
+    Checked before the parser runs: on one line, YAML parsers read up to 1 024 characters ahead
+    before they report a collection, and libyaml (as PyYAML 6.0.4 bundles it) stops at 1 000
+    levels with an error of its own, so the event stream alone would not see this document.
+    """
+    if text.count("[") + text.count("{") <= YAML_MAX_DEPTH:
+        return None
+    depth, line, quote, prev, i = 0, 1, "", "\n", 0
+    while i < len(text):
+        ch = text[i]
+        if ch == "\n":
+            line += 1
+        if quote:
+            if ch == "\\" and quote == '"':
+                i += 1  # an escaped character, perhaps the quote
+            elif ch == quote:
+                quote = ""
+        elif ch == "#" and prev in " \t\n":
+            end = text.find("\n", i)
+            i, prev = (len(text) if end < 0 else end), " "
+            continue
+        elif ch in "'\"" and prev in " \t\n[{,:-":  # a quote opens a scalar only where one may start
+            quote = ch
+        elif ch in "[{":
+            depth += 1
+            if depth > YAML_MAX_DEPTH:
+                return line
+        elif ch in "]}":
+            depth = max(0, depth - 1)
+        prev = ch
+        i += 1
+    return None
+
+
 def safe_yaml(text: str, where: str) -> Any:
     """``yaml.safe_load(text)`` within the limits of :func:`check_yaml_limits`; YAML errors
     (and the limits) raise :class:`ConfigError` naming ``where`` and the line."""
@@ -125,7 +168,7 @@ def safe_yaml(text: str, where: str) -> Any:
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         line = f" line {mark.line + 1}" if mark else ""
-        raise ConfigError(f"{where}:{line} invalid YAML ({getattr(exc, 'problem', None) or exc})") from None
+        raise ConfigError(f"{where}:{line} invalid YAML ({excerpt(getattr(exc, 'problem', None) or exc)})") from None
     except RecursionError:
         raise ConfigError(f"{where}: nested too deeply; not a config") from None
 
@@ -173,7 +216,7 @@ def merge_layer(base: dict, layer: dict, source: str) -> dict:
     for section, value in layer.items():
         if section not in SECTIONS:
             raise ConfigError(
-                f"{source}: {section}: unknown section" + _suggest(str(section), list(SECTIONS))
+                f"{source}: {excerpt(section)}: unknown section" + _suggest(str(section), list(SECTIONS))
             )
         where = f"{source}: {section}"
         if section == "runtime":
@@ -196,15 +239,15 @@ def merge_layer(base: dict, layer: dict, source: str) -> dict:
 def parse_set(assignment: str) -> tuple[list[str], Any]:
     """Split ``section.key=value`` into the key path and the YAML-parsed value."""
     if "=" not in assignment:
-        raise ConfigError(f"--set {assignment}: expected section.key=value")
+        raise ConfigError(f"--set {excerpt(assignment)}: expected section.key=value")
     key, raw = assignment.split("=", 1)
     parts = [p for p in key.strip().split(".") if p]
     if len(parts) < 2:
-        raise ConfigError(f"--set {assignment}: expected section.key=value (e.g. cost.window=[5,5])")
+        raise ConfigError(f"--set {excerpt(assignment)}: expected section.key=value (e.g. cost.window=[5,5])")
     if not raw.strip():
         return parts, ""
     try:
-        check_yaml_limits(raw, f"--set {key.strip()}")
+        check_yaml_limits(raw, f"--set {excerpt(key.strip())}")
         value = yaml.safe_load(raw)
     except yaml.YAMLError:
         value = raw
@@ -215,9 +258,10 @@ def apply_set(config: dict, assignment: str) -> dict:
     """Apply one ``--set`` assignment; returns a new dict."""
     parts, value = parse_set(assignment)
     section = parts[0]
-    where = f"--set {assignment}"
+    where = f"--set {excerpt(assignment)}"
     if section not in SECTIONS:
-        raise ConfigError(f"{where}: unknown section {section!r}" + _suggest(section, list(SECTIONS)))
+        raise ConfigError(f"{where}: unknown section {excerpt(section, quote=True)}"
+                          + _suggest(section, list(SECTIONS)))
     out = copy.deepcopy(config)
     if section in LIST_SECTIONS:
         stages_ = out.setdefault(section, [])
@@ -234,14 +278,14 @@ def apply_set(config: dict, assignment: str) -> dict:
             if not matches:
                 listed = [s.get("name") for s in stages_]
                 raise ConfigError(
-                    f"{where}: no stage {target!r} in {section}" + _suggest(target, listed)
+                    f"{where}: no stage {excerpt(target, quote=True)} in {section}" + _suggest(target, listed)
                 )
             if len(matches) > 1:
                 # E.g. quality's two geodesic_vote stages (rows, columns): editing the first one
                 # silently would leave the other as it was.
                 at = ", ".join(str(i) for i in matches)
                 raise ConfigError(f"{where}: {section} has {len(matches)} {target!r} stages (at {at}); "
-                                  f"address one by its index, e.g. {section}.{matches[0]}.{key}")
+                                  f"address one by its index, e.g. {section}.{matches[0]}.{excerpt(key)}")
             entry = stages_[matches[0]]
         entry[key] = value
         return out

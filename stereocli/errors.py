@@ -66,6 +66,24 @@ class Interrupted(KeyboardInterrupt):
         return 128 + self.signum
 
 
+#: The most characters of a user's value an error message quotes: a hostile value (a 100 KB
+#: ``--set``, a garbled calib.txt line) is named by its start and its length, never echoed whole.
+EXCERPT_CHARS = 60
+
+
+def excerpt(value: object, *, quote: bool = False, limit: int = EXCERPT_CHARS) -> str:
+    """How an error message quotes a user's ``value``: a string as it is (``repr`` with ``quote``,
+    and any other value always), cut after ``limit`` characters with the length of the whole.
+
+    >>> excerpt("[" * 1000)
+    '[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[… (1000 characters)'
+    """
+    text = repr(value) if quote or not isinstance(value, str) else value
+    if len(text) <= limit:
+        return text
+    return f"{text[:limit]}… ({len(text)} characters)"
+
+
 def close_matches(word: str, options: Iterable[str]) -> list[str]:
     """Up to three of ``options`` that look like ``word`` (for "did you mean" hints)."""
     return difflib.get_close_matches(str(word), [str(o) for o in options], n=3, cutoff=0.5)

@@ -38,7 +38,7 @@ import typing
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
-from .errors import ConfigError, did_you_mean
+from .errors import ConfigError, did_you_mean, excerpt
 
 #: Pipeline order of the stage kinds.
 KINDS = ("preprocess", "cost", "aggregation", "optimizer", "refinement")
@@ -238,7 +238,7 @@ class Stage:
                 continue
             if key not in names:
                 raise ConfigError(
-                    f"{where}{key}: unknown parameter of {self.kind} stage '{self.name}'"
+                    f"{where}{excerpt(key)}: unknown parameter of {self.kind} stage '{self.name}'"
                     + _suggest(key, names)
                 )
             kwargs[key] = _coerce(value, hints[key], f"{where}{key}", self._meta(key))
@@ -267,38 +267,38 @@ def _coerce(value: Any, tp: Any, where: str, meta: dict) -> Any:
         if isinstance(value, (int, float)) and not isinstance(value, bool):
             value = (value, value)  # a single number means a square window
         if not isinstance(value, (list, tuple)) or len(value) != 2:
-            raise ConfigError(f"{where}: expected a pair like [7, 9], got {value!r}")
+            raise ConfigError(f"{where}: expected a pair like [7, 9], got {excerpt(value, quote=True)}")
         return tuple(_coerce(v, elem, where, meta) for v in value)
     if tp is bool:
         if not isinstance(value, bool):
-            raise ConfigError(f"{where}: expected true or false, got {value!r}")
+            raise ConfigError(f"{where}: expected true or false, got {excerpt(value, quote=True)}")
         return value
     if tp is int:
         if isinstance(value, bool) or not isinstance(value, int):
             if isinstance(value, float) and value.is_integer():
                 value = int(value)
             else:
-                raise ConfigError(f"{where}: expected an integer, got {value!r}")
+                raise ConfigError(f"{where}: expected an integer, got {excerpt(value, quote=True)}")
     elif tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ConfigError(f"{where}: expected a number, got {value!r}")
+            raise ConfigError(f"{where}: expected a number, got {excerpt(value, quote=True)}")
         value = float(value)
         if not math.isfinite(value):  # NaN passes every comparison below
-            raise ConfigError(f"{where}: expected a finite number, got {value!r}")
+            raise ConfigError(f"{where}: expected a finite number, got {excerpt(value, quote=True)}")
     elif tp is str:
         if not isinstance(value, str):
-            raise ConfigError(f"{where}: expected a string, got {value!r}")
+            raise ConfigError(f"{where}: expected a string, got {excerpt(value, quote=True)}")
     choices = meta.get("choices")
     if choices and value not in choices:
         raise ConfigError(
-            f"{where}: {value!r} is not one of {', '.join(map(str, choices))}"
+            f"{where}: {excerpt(value, quote=True)} is not one of {', '.join(map(str, choices))}"
             + did_you_mean(str(value), [str(c) for c in choices])
         )
     low, high = meta.get("low"), meta.get("high")
     if low is not None and value < low or high is not None and value > high:
         lo = "-inf" if low is None else f"{low:g}"
         hi = "inf" if high is None else f"{high:g}"
-        raise ConfigError(f"{where}: {value!r} is out of range [{lo}, {hi}]")
+        raise ConfigError(f"{where}: {excerpt(value, quote=True)} is out of range [{lo}, {hi}]")
     return value
 
 
@@ -373,7 +373,7 @@ def get(kind: str, name: str, *, source: str = "<config>", section: str = "") ->
     if stage is None:
         where = f"{source}: {section or kind}.name"
         known = sorted(set(_REGISTRY[kind]) | set(_DECLARED[kind]))
-        raise ConfigError(f"{where}: unknown {kind} stage {name!r}" + _suggest(str(name), known))
+        raise ConfigError(f"{where}: unknown {kind} stage {excerpt(name, quote=True)}" + _suggest(str(name), known))
     return stage
 
 

@@ -28,13 +28,18 @@ def calibrate_folder(folder: str | os.PathLike, pattern: Pattern, options: Calib
     if swap:
         pairs = [(n, r, l) for n, l, r in pairs]
     paths = [p for _, l, r in pairs for p in (l, r)]
-    detections = detect_all(paths, pattern, detector=detector, jobs=jobs, cache=cache, progress=progress)
+    cache_warnings: list[str] = []
+    detections = detect_all(paths, pattern, detector=detector, jobs=jobs, cache=cache, progress=progress,
+                            warnings=cache_warnings)
     if not any(d.found for d in detections.values()):
         first = detections[paths[0]]
-        raise DataError(f"{folder}: {first.reason or 'target not found'} in any of the {len(paths)} images; "
-                        f"check --pattern (COLSxROWS inner corners) and --pattern-type")
+        raise DataError(f"{folder}: target not found in any of the {len(paths)} images ({first.path}: "
+                        f"{first.reason or 'not found'}); check --pattern (COLSxROWS inner corners) and --pattern-type")
     views, missing, size = build_views(pairs, detections, pattern)
     if len(views) < 3:
         raise DataError(f"{folder}: the target was found in both images of only {len(views)} pair(s); need at least 3"
                         + (f" (e.g. {missing[0]['image']}: {missing[0]['reason']})" if missing else ""))
-    return calibrate_stereo(views, size, pattern, options or CalibOptions(), missing=missing, total_pairs=len(pairs))
+    result = calibrate_stereo(views, size, pattern, options or CalibOptions(), missing=missing,
+                              total_pairs=len(pairs))
+    result.report["warnings"] += cache_warnings
+    return result

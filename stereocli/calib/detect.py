@@ -59,12 +59,12 @@ def cache_key(path: str | os.PathLike, pattern: Pattern, detector: str) -> str:
 
 
 def _load_cache(cache: Path | None) -> dict:
-    if cache is None or not cache.is_file():
-        return {}
     try:
+        if cache is None or not cache.is_file():
+            return {}
         data = json.loads(cache.read_text())
     except (OSError, ValueError):
-        return {}  # a damaged cache is only a lost speed-up
+        return {}  # a damaged or unreadable cache is only a lost speed-up
     if not isinstance(data, dict) or data.get("version") != CACHE_VERSION or not isinstance(data.get("entries"), dict):
         return {}
     return data["entries"]
@@ -88,6 +88,10 @@ def _cached(path: str, entry) -> Detection | None:
 def _detect_one(path: str, pattern: Pattern, detector: str) -> Detection:
     image = read_image(path, gray=True)
     h, w = image.shape[:2]
+    smallest = 3 * (min(pattern.cols, pattern.rows) + 1)  # a few pixels a square at least
+    if min(w, h) < smallest:
+        return Detection(path=path, size=(w, h), reason=f"{w}x{h} px is too small for a {pattern.cols}x{pattern.rows} "
+                                                        f"target (at least {smallest} px a side)")
     try:
         corners, ids, reason = detect(image, pattern, detector=detector)
     except Exception as exc:  # noqa: BLE001 - an OpenCV failure on one image is that image's reason
@@ -96,10 +100,12 @@ def _detect_one(path: str, pattern: Pattern, detector: str) -> Detection:
 
 
 def detect_all(paths: list[str], pattern: Pattern, *, detector: str = "auto", jobs: int | None = None,
-               cache: str | os.PathLike | None = None, progress: bool | None = None) -> dict[str, Detection]:
+               cache: str | os.PathLike | None = None, progress: bool | None = None,
+               warnings: list[str] | None = None) -> dict[str, Detection]:
     """Detect ``pattern`` in every image (threads: OpenCV releases the GIL); returns path → Detection.
 
-    Unreadable images raise :class:`DataError` naming the file.
+    Unreadable images raise :class:`DataError` naming the file. A cache that cannot be written
+    is only a lost speed-up: detection goes on, and a line saying so is added to ``warnings``.
     """
     from tqdm import tqdm
 
@@ -137,5 +143,11 @@ def detect_all(paths: list[str], pattern: Pattern, *, detector: str = "auto", jo
         if cache_path is not None:
             for p in todo:
                 entries[keys[p]] = out[p].to_json()
-            write_text(cache_path, json.dumps({"version": CACHE_VERSION, "entries": entries}) + "\n")
+            try:
+                write_text(cache_path, json.dumps({"version": CACHE_VERSION, "entries": entries}) + "\n")
+            except (OSError, DataError) as exc:
+                reason = exc.strerror if isinstance(exc, OSError) else str(exc).removeprefix(f"{cache_path}: ")
+                if warnings is not None:
+                    warnings.append(f"{cache_path}: detection cache not written ({reason}); the next run detects "
+                                    "again (--cache FILE puts it elsewhere)")
     return {p: out[p] for p in paths}

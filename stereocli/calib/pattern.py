@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from ..errors import ConfigError, did_you_mean
+from ..errors import ConfigError, did_you_mean, excerpt
 
 KINDS = ("chessboard", "circles", "acircles", "charuco")
 DETECTORS = ("auto", "classic", "sb")
@@ -83,7 +83,8 @@ def _aruco_dictionary_id(name: str) -> int:
     known = sorted(n for n in dir(aruco) if n.startswith("DICT_")) if aruco is not None else []
     value = getattr(aruco, str(name).upper(), None) if str(name).upper().startswith("DICT_") else None
     if not isinstance(value, int):
-        raise ConfigError(f"--dictionary {name!r}: unknown ArUco dictionary" + did_you_mean(str(name).upper(), known)
+        raise ConfigError(f"--dictionary {excerpt(name, quote=True)}: unknown ArUco dictionary"
+                          + did_you_mean(str(name).upper(), known)
                           + f"; e.g. DICT_5X5_100, DICT_4X4_50 ({len(known)} predefined)")
     return value
 
@@ -95,7 +96,7 @@ def parse_pattern_size(text: str) -> tuple[int, int]:
     """``"9x6"`` → (9, 6); a ConfigError names the expected form otherwise."""
     m = _PATTERN.match(text or "")
     if not m:
-        raise ConfigError(f"--pattern {text!r}: expected COLSxROWS inner corners, e.g. 9x6")
+        raise ConfigError(f"--pattern {excerpt(text, quote=True)}: expected COLSxROWS inner corners, e.g. 9x6")
     return int(m.group(1)), int(m.group(2))
 
 

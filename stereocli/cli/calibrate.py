@@ -10,7 +10,7 @@ import click
 
 from . import options
 from ..errors import ConfigError as usage_error  # one-line message, exit 2
-from ..errors import check_outputs_free
+from ..errors import check_outputs_free, excerpt
 
 _SQUARE = re.compile(r"^\s*([0-9]*\.?[0-9]+(?:[eE][-+]?\d+)?)\s*([a-zA-Zµ]*)\s*$")
 
@@ -18,10 +18,10 @@ _SQUARE = re.compile(r"^\s*([0-9]*\.?[0-9]+(?:[eE][-+]?\d+)?)\s*([a-zA-Zµ]*)\s*
 def _square(text: str, units: str | None) -> tuple[float, str]:
     m = _SQUARE.match(text)
     if not m:
-        raise usage_error(f"--square {text!r}: expected a length like 25mm, 0.025m or 1")
+        raise usage_error(f"--square {excerpt(text, quote=True)}: expected a length like 25mm, 0.025m or 1")
     value, unit = float(m.group(1)), m.group(2) or units or "unit"
     if units and m.group(2) and units != m.group(2):
-        raise usage_error(f"--square {text!r} and --units {units!r} disagree")
+        raise usage_error(f"--square {excerpt(text, quote=True)} and --units {excerpt(units, quote=True)} disagree")
     if value <= 0:
         raise usage_error("--square must be positive")
     return value, unit
@@ -114,6 +114,12 @@ def calibrate_cmd(ctx, input_dir, output, pattern_text, square_text, units, patt
         output = output.with_name(output.name + ".yaml")
     cols, rows = parse_pattern_size(pattern_text)
     square, unit = _square(square_text, units)
+    if fmt == "ros":
+        from ..io.calib import UNIT_SCALE
+
+        if unit not in UNIT_SCALE:  # refused now, not after detecting every image
+            raise usage_error(f"--to ros: ROS camera_info is in metres; give --square a length unit, e.g. 25mm "
+                              f"or 0.025m (known: {', '.join(UNIT_SCALE)})")
     pattern = Pattern(cols, rows, square, pattern_type, unit, marker_size, dictionary)
     opts = CalibOptions(fix_principal_point=fix_principal_point, zero_tangent=zero_tangent, fix_aspect=fix_aspect,
                         fix_k3=fix_k3, rational=rational, fisheye=fisheye, same_focal=same_focal, joint=joint,

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import re
+import signal
 import sys
 import traceback
 
 import click
 
-from ..errors import EXIT_DATA, EXIT_SIGINT, EXIT_USAGE, StereoError
+from ..errors import EXIT_DATA, EXIT_SIGINT, EXIT_USAGE, StereoError, excerpt
 
 
 def _verbosity(argv: list[str], flag: str = "v") -> int:
@@ -60,30 +62,55 @@ def run_with_error_handling(cli: click.Group, argv: list[str] | None = None) -> 
     except click.exceptions.Exit as exc:
         return exc.exit_code
     except click.ClickException as exc:
+        exc.message = _short_values(exc.message)  # Click's own messages quote an option's value whole
         exc.show()
         return exc.exit_code
-    except click.exceptions.Abort:
+    except click.exceptions.Abort as exc:
+        if isinstance(exc.__cause__ or exc.__context__, KeyboardInterrupt):  # Click's name for an interrupt
+            return _interrupted(exc.__cause__ or exc.__context__)
         click.echo("Aborted.", err=True)
         return EXIT_DATA
     except StereoError as exc:
         if verbose >= 2:
             traceback.print_exc()
-        click.echo(f"Error: {exc}", err=True)
+        click.echo(_short_values(f"Error: {exc}"), err=True)
         return exc.exit_code
     except KeyboardInterrupt as exc:
-        click.echo("Interrupted.", err=True)
-        return getattr(exc, "exit_code", EXIT_SIGINT)
+        return _interrupted(exc)
     except OSError as exc:  # disk full, permissions: name the file
         if verbose >= 2:
             traceback.print_exc()
         where = f"{exc.filename}: " if exc.filename else ""
-        click.echo(f"Error: {where}{exc.strerror or exc}", err=True)
+        click.echo(_short_values(f"Error: {where}{exc.strerror or exc}"), err=True)
         return EXIT_DATA
     except Exception as exc:  # noqa: BLE001 - last resort: one line unless -vv
         if verbose >= 2:
             traceback.print_exc()
-        click.echo(f"Error: {type(exc).__name__}: {exc} (run with -vv for the traceback)", err=True)
+        click.echo(_short_values(f"Error: {type(exc).__name__}: {exc} (run with -vv for the traceback)"), err=True)
         return EXIT_DATA
+
+
+#: Runs of non-blank characters longer than this are no path (PATH_MAX on Linux): a value a
+#: message quotes whole, shortened to an excerpt.
+_LONGEST_PATH = 4096
+
+
+def _short_values(message: str) -> str:
+    """``message`` with every run of non-blank characters longer than any path shortened to an
+    :func:`~stereocli.errors.excerpt`: the last guard for values no error site shortened itself
+    (Click quotes an option's value whole; an OS error names a file name too long to exist)."""
+    def shorten(match: re.Match) -> str:
+        value = match.group()
+        return excerpt(value.rstrip(":")) + (":" if value.endswith(":") else "")
+
+    return re.sub(r"\S{%d,}" % (_LONGEST_PATH + 1), shorten, message)
+
+
+def _interrupted(exc: KeyboardInterrupt) -> int:
+    """Report an interrupt that reached the command line; returns 130 (SIGINT) or 143 (SIGTERM)."""
+    code = getattr(exc, "exit_code", EXIT_SIGINT)
+    click.echo(f"Interrupted ({signal.Signals(code - 128).name}).", err=True)
+    return code
 
 
 def usage_error(message: str) -> click.UsageError:

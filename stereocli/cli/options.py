@@ -6,6 +6,8 @@ import math
 
 import click
 
+from ..errors import excerpt
+
 
 class Finite(click.FloatRange):
     """A number that must be finite (NaN passes every range check, and inf is no setting),
@@ -14,7 +16,7 @@ class Finite(click.FloatRange):
     def convert(self, value, param, ctx):
         number = super().convert(value, param, ctx)
         if not math.isfinite(number):
-            self.fail(f"{value!r} is not a finite number", param, ctx)
+            self.fail(f"{excerpt(value, quote=True)} is not a finite number", param, ctx)
         return number
 
 class _NdispType(click.ParamType):
@@ -28,7 +30,7 @@ class _NdispType(click.ParamType):
         try:
             number = int(str(value))
         except ValueError:
-            self.fail(f"{value!r} is neither a whole number nor 'auto'", param, ctx)
+            self.fail(f"{excerpt(value, quote=True)} is neither a whole number nor 'auto'", param, ctx)
         if not 1 <= number <= 100000:
             self.fail(f"{number} is not in the range 1<=x<=100000", param, ctx)
         return number

@@ -10,6 +10,7 @@ import click
 from . import options
 from .common import print_json, run_batch_command, unpaired_failures
 from ..errors import ConfigError as usage_error  # one-line message, exit 2
+from ..errors import excerpt
 
 
 def _size(text: str | None) -> tuple[int, int] | None:
@@ -18,9 +19,13 @@ def _size(text: str | None) -> tuple[int, int] | None:
     try:
         w, h = (int(v) for v in text.lower().split("x"))
     except ValueError:
-        raise usage_error(f"--size {text!r}: expected WIDTHxHEIGHT, e.g. 1280x960") from None
+        raise usage_error(f"--size {excerpt(text, quote=True)}: expected WIDTHxHEIGHT, e.g. 1280x960") from None
     if w <= 0 or h <= 0:
-        raise usage_error(f"--size {text!r}: width and height must be positive")
+        raise usage_error(f"--size {excerpt(text, quote=True)}: width and height must be positive")
+    from ..rectify.maps import MAX_SIDE
+
+    if max(w, h) > MAX_SIDE:
+        raise usage_error(f"--size {w}x{h}: rectification handles at most {MAX_SIDE} px a side")
     return w, h
 
 

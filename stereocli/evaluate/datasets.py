@@ -242,6 +242,9 @@ def load_kitti(root: Path, name: str) -> Scene:
     obj = root / "obj_map" / f"{name}.png"
     if obj.is_file():
         scene.obj_map = read_image(obj, gray=True)
+        if scene.obj_map.shape != gt.shape:
+            raise DataError(f"{obj}: {scene.obj_map.shape[1]}x{scene.obj_map.shape[0]} but the GT is "
+                            f"{gt.shape[1]}x{gt.shape[0]}")
     return scene
 
 

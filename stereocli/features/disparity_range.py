@@ -36,6 +36,8 @@ MIN_VALID_FRACTION = 0.02
 MIN_SPARSE = 30
 #: Coarse winners at an end of the search are dropped when they are fewer than this share.
 END_SHARE = 0.01
+#: Rows the coarse match needs at least (its census window is 5 x 5).
+MIN_COARSE_ROWS = 5
 
 
 @dataclass(frozen=True)
@@ -77,6 +79,11 @@ def _coarse_config(speckle: int):
     }, "disparity range estimate")
 
 
+def coarse_scale(width: int) -> int:
+    """The shrink factor of the coarse match of an image ``width`` px wide."""
+    return max(1, int(round(width / COARSE_WIDTH)))
+
+
 def _shrink(image: np.ndarray, scale: int) -> np.ndarray:
     if scale == 1:
         return np.asarray(image, np.float32)
@@ -100,7 +107,7 @@ def coarse_disparities(left: np.ndarray, right: np.ndarray, lo: float, hi: float
     from ..match.pipeline import match_pair
 
     h, w = left.shape[:2]
-    scale = max(1, int(round(w / COARSE_WIDTH)))
+    scale = coarse_scale(w)
     small_left, small_right = _shrink(left, scale), _shrink(right, scale)
     ws = small_left.shape[1]
     lo_c, hi_c = int(np.floor(lo / scale)), int(np.ceil(hi / scale))
@@ -123,11 +130,15 @@ def estimate_range(left: np.ndarray, right: np.ndarray, matches: PointMatches | 
     ``matches``: sparse matches of the pair (:func:`~stereocli.features.points.match_points`,
     computed here if not given); only those on the same row (|dy − median| ≤ 1 px) count.
     Raises :class:`DataError` when neither the coarse match nor the sparse matches find enough
-    texture to decide.
+    texture to decide, and when the pair has too few rows for the coarse match.
     """
     if left.shape[:2] != right.shape[:2]:
         raise DataError("left and right differ in size")
-    w = left.shape[1]
+    h, w = left.shape[:2]
+    scale = coarse_scale(w)
+    if h < MIN_COARSE_ROWS * scale:
+        raise DataError(f"cannot estimate the disparity range of a {w}x{h} px pair: the coarse match needs "
+                        f"{MIN_COARSE_ROWS * scale} rows at this width; give --ndisp N (and --min-disp)")
     if matches is None:
         matches = match_points(left, right)
     dx = matches.dx

@@ -9,8 +9,10 @@ Formats (``load_calibration`` detects them from the extension and the content):
 * **ROS camera_info pair**: ``OUT_left.yaml`` + ``OUT_right.yaml`` (``image_width``,
   ``image_height``, ``camera_name``, ``camera_matrix``, ``distortion_model``,
   ``distortion_coefficients``, ``rectification_matrix``, ``projection_matrix`` with the
-  right ``P[0,3] = -fx'·B``). R and T are recovered exactly from R1, R2, P2
-  (``R = R2ᵀ·R1``, ``T = R2ᵀ·[P2[0,3]/P2[0,0], 0, 0]``); the RMS is not stored by ROS.
+  right ``P[0,3] = -fx'·B``). ROS lengths are metres (REP 103): writing converts from the
+  calibration's unit (and refuses an unknown one), reading gives ``units="m"``. R and T are
+  recovered exactly from R1, R2, P2 (``R = R2ᵀ·R1``, ``T = R2ᵀ·[P2[0,3]/P2[0,0], 0, 0]``); the
+  RMS is not stored by ROS.
   Reading accepts either file of the pair, the base name ``OUT.yaml`` when only the pair
   exists, or one file holding the two documents (left first).
 * **Kalibr camchain** (``cam0``/``cam1`` with ``intrinsics``, ``distortion_coeffs``,
@@ -32,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import ConfigError, DataError
+from ..errors import ConfigError, DataError, excerpt
 from .atomic import atomic_path, write_text
 from .middlebury import MiddleburyCalib, format_calib_txt, read_calib_txt
 
@@ -273,17 +275,25 @@ def _ros_doc(name: str, K, D, R, P, size, model: str) -> str:
 def write_ros(path: str | os.PathLike, calib: StereoCalibration) -> tuple[Path, Path]:
     """Write the ROS ``camera_info`` pair ``<stem>_left.yaml`` / ``<stem>_right.yaml``; returns both paths.
 
-    ``calib`` must be rectified (R1, R2, P1, P2: :func:`stereocli.rectify.rectified_calibration`).
+    ``calib`` must be rectified (R1, R2, P1, P2: :func:`stereocli.rectify.rectified_calibration`)
+    and in a known length unit (:data:`UNIT_SCALE`): the projection matrices' translations
+    (``P[:, 3]``, ``-fx'·B`` on the right) are written in metres, as ROS reads them.
     """
     if not calib.is_rectified:
         raise DataError(f"{path}: ROS camera_info needs a rectified calibration: rectify the calibration first "
                         "(P1, P2 missing)")
+    if calib.units not in UNIT_SCALE:
+        raise DataError(f"{path}: ROS camera_info is in metres, but the calibration's unit is "
+                        f"{excerpt(calib.units, quote=True)}, no known length ({', '.join(UNIT_SCALE)}); "
+                        "calibrate with --square SIZE[UNIT], e.g. 25mm")
     left, right = ros_pair_paths(path)
     size = calib.rectified_size or calib.image_size
     if size != calib.image_size:
         raise ConfigError(f"{path}: ROS camera_info needs the rectified size to equal the image size")
-    write_text(left, _ros_doc("left", calib.K1, calib.D1, calib.R1, calib.P1, calib.image_size, calib.model))
-    write_text(right, _ros_doc("right", calib.K2, calib.D2, calib.R2, calib.P2, calib.image_size, calib.model))
+    metres = np.diag([1.0, 1.0, 1.0, UNIT_SCALE[calib.units]])
+    write_text(left, _ros_doc("left", calib.K1, calib.D1, calib.R1, calib.P1 @ metres, calib.image_size, calib.model))
+    write_text(right, _ros_doc("right", calib.K2, calib.D2, calib.R2, calib.P2 @ metres, calib.image_size,
+                               calib.model))
     return left, right
 
 
@@ -332,7 +342,7 @@ def _from_ros(left: dict, right: dict, where: Path) -> StereoCalibration:
     model = "fisheye" if str(left.get("distortion_model", "")).lower() in ("equidistant", "fisheye") else "pinhole"
     return StereoCalibration(K1=K1, D1=D1, K2=K2, D2=D2, R=R, T=T, R1=R1, R2=R2, P1=P1, P2=P2,
                              Q=q_from_projections(P1, P2), image_size=size, rectified_size=size,
-                             units="unit", model=model)
+                             units="m", model=model)
 
 
 def read_ros(path: str | os.PathLike) -> StereoCalibration:

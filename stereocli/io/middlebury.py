@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import DataError
+from ..errors import DataError, excerpt
 from .atomic import write_text
 
 _NUMBER = re.compile(r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?")
@@ -70,9 +70,9 @@ def read_calib_txt(path: str | os.PathLike) -> MiddleburyCalib:
         try:
             value = float(raw)
         except ValueError:
-            raise DataError(f"{path}: {key}={raw!r} is not a number") from None
+            raise DataError(f"{path}: {key}={excerpt(raw, quote=True)} is not a number") from None
         if not math.isfinite(value):
-            raise DataError(f"{path}: {key}={raw!r} is not a finite number")
+            raise DataError(f"{path}: {key}={excerpt(raw, quote=True)} is not a finite number")
         return cast(value)
 
     return MiddleburyCalib(

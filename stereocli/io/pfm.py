@@ -29,7 +29,11 @@ def read_pfm(path: str | os.PathLike) -> np.ndarray:
     m = _HEADER.match(raw[:256])
     if not m:
         raise DataError(f"{path}: not a PFM file (bad header)")
-    kind, width, height, scale = m.group(1), int(m.group(2)), int(m.group(3)), float(m.group(4))
+    kind, width, height = m.group(1), int(m.group(2)), int(m.group(3))
+    try:
+        scale = float(m.group(4))
+    except ValueError:
+        raise DataError(f"{path}: not a PFM file (scale {m.group(4).decode()!r} is no number)") from None
     channels = 3 if kind == b"PF" else 1
     dtype = "<f4" if scale < 0 else ">f4"
     count = width * height * channels
@@ -58,5 +62,14 @@ def encode_pfm(image: np.ndarray) -> bytes:
 
 
 def write_pfm(path: str | os.PathLike, image: np.ndarray) -> None:
-    """Write ``image`` as a little-endian PFM, atomically."""
+    """Write ``image`` as a little-endian PFM, atomically; refuses NaN (:func:`refuse_nan`)."""
+    refuse_nan(path, image)
     write_bytes(path, encode_pfm(image))
+
+
+def refuse_nan(path: str | os.PathLike, values: np.ndarray) -> None:
+    """Raise :class:`DataError` naming ``path`` when ``values`` hold NaN: the last guard before a
+    map is written, since +inf, never NaN, marks an invalid pixel and readers refuse NaN."""
+    nan = int(np.count_nonzero(np.isnan(np.asarray(values, dtype=np.float32))))
+    if nan:
+        raise DataError(f"{path}: {nan} NaN values; not written (+inf marks invalid pixels)")

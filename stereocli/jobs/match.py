@@ -69,6 +69,8 @@ def resolve_range(pair: StereoInput, ndisp: int | str | None, min_disp: int | No
         if ndisp is None and calib.ndisp > 0:
             info["range_source"] = "calib.txt"
             return int(min_disp or 0), int(calib.ndisp), info
+        if ndisp is None and min_disp is None:
+            info["note"] = f"{pair.calib}: ndisp={calib.ndisp} gives no range; the range is estimated from the images"
     if ndisp is None or ndisp == AUTO:
         if min_disp is not None:
             raise ConfigError(f"{pair.name}: --min-disp needs --ndisp N (or a calib.txt with ndisp=); "
@@ -134,6 +136,8 @@ def plan_items(
         options = {"config": config, "min_disp": lo, "ndisp": nd, "range_source": info["range_source"],
                    "png16_scale": png16_scale, "keep_invalid": keep_invalid, "require_aligned": require_aligned,
                    "vmin": info.get("vmin"), "vmax": info.get("vmax"), "record": record_info or {}}
+        if info.get("note"):
+            options["range_note"] = info["note"]
         if split_strips:
             options["split_strips"] = True
         items.append(WorkItem(pair.name, inputs, outputs, options, folder=str(folder), command="match",
@@ -236,6 +240,7 @@ def _read_views(item: WorkItem, gray: bool = False) -> tuple[np.ndarray, np.ndar
 
 def match_item(item: WorkItem) -> dict:
     """Match one pair and write its outputs atomically; returns details for the run record."""
+    from ..io.exif import orientation_note
     from ..io.images import write_disparity, write_image
     from ..io.pfm import write_pfm
     from ..match.pipeline import match_pair
@@ -262,6 +267,7 @@ def match_item(item: WorkItem) -> dict:
     survey = survey_pair(item.name, left, right, opts, left_valid=left_valid, right_valid=right_valid,
                          measure_rows=not rows_in_match)
     min_disp, ndisp = survey["range"]["min_disp"], survey["range"]["ndisp"]
+    check_range_meets_image(item.name, min_disp, ndisp, left.shape[1])
     strip_map = cluster_strip_map(opts["config"]) if opts.get("split_strips") else None
     flags = {"want_right": "right" in item.outputs, "keep_invalid": opts["keep_invalid"],
              "want_confidence": "confidence" in item.outputs}
@@ -293,7 +299,8 @@ def match_item(item: WorkItem) -> dict:
         write_pfm(out["confidence"], conf)
     if "right" in out:
         write_pfm(out["right"], result.disparity_right)
-    survey["warnings"] = _rows_corrected(survey["warnings"], result.notes.get("row_align"))
+    notes = [orientation_note(item.inputs["left"]), orientation_note(item.inputs["right"]), opts.get("range_note")]
+    survey["warnings"] = [n for n in notes if n] + _rows_corrected(survey["warnings"], result.notes.get("row_align"))
     h, w = result.disparity.shape
     finite = np.isfinite(result.disparity)
     details = {
@@ -325,6 +332,14 @@ def match_item(item: WorkItem) -> dict:
 #: its advice (replaced by what ``row_align`` did when the matching corrected the rows).
 ROWS_NOT_ALIGNED = "rows not aligned"
 RECTIFY_FIRST = "rectify the pair first"
+
+
+def check_range_meets_image(name: str, min_disp: int, ndisp: int, width: int) -> None:
+    """Raise :class:`DataError` when no disparity of ``[min_disp, min_disp + ndisp)`` puts a left
+    pixel's match inside an image ``width`` px wide: every pixel would be invalid."""
+    if min_disp >= width or min_disp + ndisp - 1 <= -width:
+        raise DataError(f"{name}: the disparity range {min_disp}..{min_disp + ndisp - 1} px lies outside the "
+                        f"{width} px wide image (a match needs |d| < {width}); no pixel can match (check --min-disp)")
 
 
 def _rows_corrected(warnings: list[str], note: dict | None) -> list[str]:

@@ -88,6 +88,7 @@ def _rectified_range(left, right, rect, opts: dict) -> tuple[int, dict]:
 def rectify_item(item: WorkItem) -> dict:
     """Rectify one pair (see the module docstring for outputs); returns run-record details."""
     from ..io.calib import to_middlebury
+    from ..io.exif import orientation_note
     from ..io.images import read_image, write_image
     from ..io.middlebury import write_calib_txt
     from ..rectify.maps import check_image, rectified_calibration, rectify_images
@@ -115,10 +116,11 @@ def rectify_item(item: WorkItem) -> dict:
     write_calib_txt(out["calib"], mb)
     if "check" in out:
         write_image(out["check"], check_image(r0, r1, rect))
+    notes = [n for n in (orientation_note(item.inputs["left"]), orientation_note(item.inputs["right"])) if n]
     return {"size": list(rect.size), "f": float(rect.P1[0, 0]), "baseline_mm": mb.baseline, "doffs": mb.doffs,
             "ndisp": ndisp, "range": span, "roi_left": list(rect.roi1), "roi_right": list(rect.roi2),
             "valid_fraction_left": float((maps.valid1 > 0).mean()),
-            "valid_fraction_right": float((maps.valid2 > 0).mean())}
+            "valid_fraction_right": float((maps.valid2 > 0).mean()), **({"warnings": notes} if notes else {})}
 
 
 # --------------------------------------------------------------------------- without a calibration

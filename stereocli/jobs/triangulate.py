@@ -164,14 +164,20 @@ def triangulate_item(item: WorkItem) -> dict:
                         f"{item.inputs['disparity']} is {disp.shape[1]}x{disp.shape[0]}")
     conf = None
     if "confidence" in item.inputs:
-        conf = read_disparity(item.inputs["confidence"])
+        conf = read_disparity(item.inputs["confidence"], kind="confidence")
         conf = np.where(np.isfinite(conf), conf, 0).astype(np.float32)
     if not np.isfinite(disp).any():
         raise DataError(f"{item.inputs['disparity']}: every disparity is invalid (+inf); nothing to triangulate")
     depth, cloud = triangulate(disp, geom, image=image, confidence=conf, normals=o.get("normals", False),
                                stride=o.get("stride", 1), min_depth=o.get("min_depth"), max_depth=o.get("max_depth"))
     if cloud.points.shape[0] == 0:
-        span = summarize(depth_from_disparity(disp, geom), cloud, geom)
+        depth_all = depth_from_disparity(disp, geom)
+        if not np.isfinite(depth_all).any():
+            raise DataError(f"{item.inputs['disparity']}: no valid depth: every disparity d has d + doffs <= 0 "
+                            f"(doffs {geom.doffs:g} px)")
+        if o.get("min_depth") is None and o.get("max_depth") is None:
+            raise DataError(f"{item.inputs['disparity']}: no valid pixel on the --stride {o.get('stride', 1)} grid")
+        span = summarize(depth_all, cloud, geom)
         raise DataError(f"{item.inputs['disparity']}: no point left after --min-depth/--max-depth "
                         f"(valid depths span {span.get('depth_min')}..{span.get('depth_max')} {geom.units})")
     out = item.outputs

@@ -16,7 +16,7 @@ import yaml
 
 from .. import registry
 from ..config import apply_set, load_yaml, merge_layer, preset_dir, resolve_config_path
-from ..errors import ConfigError
+from ..errors import ConfigError, excerpt
 from ..registry import Stage, param
 from . import stages as _stages  # noqa: F401  (registers every built-in stage)
 
@@ -92,11 +92,14 @@ def validate(config: dict, source: str = "<config>") -> PipelineConfig:
     for section in ("cost", "optimizer"):
         if section not in config:
             raise ConfigError(f"{source}: missing section {section!r}")
-    pre = [_stage_call("preprocess", e, source, f"preprocess.{e.get('name')}") for e in config.get("preprocess", [])]
+    pre = [_stage_call("preprocess", e, source, f"preprocess.{excerpt(e.get('name'))}")
+           for e in config.get("preprocess", [])]
     cost = _stage_call("cost", config["cost"], source, "cost")
-    agg = [_stage_call("aggregation", e, source, f"aggregation.{e.get('name')}") for e in config.get("aggregation", [])]
+    agg = [_stage_call("aggregation", e, source, f"aggregation.{excerpt(e.get('name'))}")
+           for e in config.get("aggregation", [])]
     opt = _stage_call("optimizer", config["optimizer"], source, "optimizer")
-    ref = [_stage_call("refinement", e, source, f"refinement.{e.get('name')}") for e in config.get("refinement", [])]
+    ref = [_stage_call("refinement", e, source, f"refinement.{excerpt(e.get('name'))}")
+           for e in config.get("refinement", [])]
     seen_map_stage = None
     for call in ref:
         if call.stage.traits.needs_cost and seen_map_stage:
@@ -127,9 +130,9 @@ def build_config(config_files: list[str] | tuple[str, ...] = (), sets: list[str]
         validate(merged, str(path))
     for assignment in sets:
         merged = apply_set(merged, assignment)
-        validate(merged, f"--set {assignment}")
+        validate(merged, f"--set {excerpt(assignment)}")
         sources.append(f"--set {assignment}")
-    result = validate(merged, sources[-1])
+    result = validate(merged, excerpt(sources[-1]))
     result.sources = sources
     return result
 

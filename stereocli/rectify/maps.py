@@ -20,6 +20,10 @@ import numpy as np
 
 from ..errors import ConfigError, DataError
 
+#: The largest image side (px) rectification handles: ``cv2.remap`` takes images under 32 767
+#: (SHRT_MAX) px a side.
+MAX_SIDE = 32766
+
 
 @dataclass
 class Rectification:
@@ -46,6 +50,9 @@ def stereo_rectify(calib, *, alpha: float = 0.0, size: tuple[int, int] | None = 
     out_size = tuple(int(v) for v in (size or calib.image_size))
     if min(out_size) <= 0 or min(calib.image_size) <= 0:
         raise DataError(f"calibration image size {calib.image_size} is not usable for rectification")
+    if max(*out_size, *calib.image_size) > MAX_SIDE:
+        raise ConfigError(f"rectified size {out_size[0]}x{out_size[1]} (images {calib.image_size[0]}x"
+                          f"{calib.image_size[1]}): rectification handles at most {MAX_SIDE} px a side")
     if calib.model == "fisheye":
         R1, R2, P1, P2, Q = cv2.fisheye.stereoRectify(
             calib.K1, calib.D1[:4], calib.K2, calib.D2[:4], calib.image_size, calib.R, calib.T.reshape(3, 1),
@@ -115,11 +122,19 @@ class RectifyMaps:
 
 
 def build_maps(calib, *, alpha: float = 0.0, size: tuple[int, int] | None = None) -> RectifyMaps:
-    """Rectify ``calib`` and build both remap tables and valid masks."""
+    """Rectify ``calib`` and build both remap tables and valid masks; :class:`DataError` when they
+    do not fit in memory (four float32 tables and two masks: 18 bytes a rectified pixel)."""
     rect = stereo_rectify(calib, alpha=alpha, size=size)
-    m1x, m1y, src = _maps(calib, rect, 1)
-    m2x, m2y, _ = _maps(calib, rect, 2)
-    return RectifyMaps(rect, m1x, m1y, m2x, m2y, valid_mask(m1x, m1y, src), valid_mask(m2x, m2y, src))
+    try:
+        m1x, m1y, src = _maps(calib, rect, 1)
+        m2x, m2y, _ = _maps(calib, rect, 2)
+        return RectifyMaps(rect, m1x, m1y, m2x, m2y, valid_mask(m1x, m1y, src), valid_mask(m2x, m2y, src))
+    except (cv2.error, MemoryError) as exc:
+        if isinstance(exc, cv2.error) and exc.code != cv2.Error.StsNoMem:
+            raise
+        w, h = rect.size
+        raise DataError(f"rectified size {w}x{h}: its remap tables need {18 * w * h / 2**30:.1f} GiB, more than "
+                        "this machine can allocate (choose a smaller --size)") from None
 
 
 INTERPOLATIONS = {"nearest": cv2.INTER_NEAREST, "linear": cv2.INTER_LINEAR, "cubic": cv2.INTER_CUBIC,
