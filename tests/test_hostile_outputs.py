@@ -251,6 +251,20 @@ def test_triangulate_never_replaces_its_own_inputs(run_cli, tmp_path, results, s
     assert _listing(res) == before
 
 
+@pytest.mark.parametrize("target", ["result", "gt"])
+def test_an_eval_report_never_replaces_what_it_scores(run_cli, tmp_path, results, scenes, target):
+    res, gt = tmp_path / "res", tmp_path / "gt"
+    shutil.copytree(results, res)
+    shutil.copytree(scenes, gt)
+    victim = res / "planes" / "disp0.pfm" if target == "result" else gt / "planes" / "disp0GT.pfm"
+    before = victim.read_bytes()
+    r = run_cli("eval", res, gt, "-o", victim, "--overwrite")
+    assert r.code == 2, r.err
+    assert "would replace the input" in r.err and len(r.err.strip().splitlines()) == 1
+    assert victim.read_bytes() == before
+    assert run_cli("eval", res, gt, "-o", res / "report.txt").code == 0  # a new file beside them is fine
+
+
 # -- the lock ----------------------------------------------------------------------------------------
 
 def test_a_dangling_lock_symlink_is_taken_over(run_cli, tmp_path, scenes):

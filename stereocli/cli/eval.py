@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import click
 
 from . import options
@@ -92,6 +94,7 @@ def eval_cmd(ctx: click.Context, results: str, ground_truth: str, fmt: str, data
         keep_arrays=bool(error_maps or html_dir),
     )
     if output:
+        _check_report_path(output, results, ground_truth)
         check_outputs_free([output], overwrite=overwrite)
     report = evaluate(results, ground_truth, options=opts, jobs=jobs, scheduler=scheduler, retries=retries,
                       verbose_errors=verbosity >= 2)
@@ -117,3 +120,23 @@ def eval_cmd(ctx: click.Context, results: str, ground_truth: str, fmt: str, data
     if not report.scenes:
         raise DataError(f"no scene could be scored ({len(report.failures)} failed)")
     ctx.exit(report.exit_code)
+
+
+#: Files of the inputs that a report written with ``-o`` must never replace.
+_DATA_SUFFIXES = (".pfm", ".png", ".npy", ".pgm", ".ppm", ".txt")
+
+
+def _check_report_path(output: str, results: str, ground_truth: str) -> None:
+    """Refuse ``-o`` on a results or ground-truth file (even with ``--overwrite``): the report
+    would replace what it scores."""
+    from pathlib import Path
+
+    from ..errors import ConfigError
+
+    real = Path(os.path.realpath(output))
+    for given in (results, ground_truth):
+        root = Path(os.path.realpath(given))
+        inside = root.is_dir() and root in real.parents and real.is_file() and real.suffix.lower() in _DATA_SUFFIXES
+        if real == root or inside:
+            raise ConfigError(f"--output {output} would replace the input {given if real == root else real}; "
+                              "write the report elsewhere")
