@@ -1,13 +1,17 @@
 #!/usr/bin/env python3
 """Accuracy/speed harness: stereocli presets vs OpenCV (and optionally CNES Pandora), side by side.
 
-Runs every method on every scene of ``../shared/data`` (MiddEval3 trainingQ and the
-Middlebury 2001/2003 scenes), scores all of them with ``stereocli.evaluate`` and prints one
-Markdown summary table plus a per-scene table; raw numbers go to JSON.
+Runs every method on every scene of ``../shared/data`` (MiddEval3 trainingQ, the Middlebury
+2001/2003 scenes the presets were tuned on, and the validation scenes nothing was tuned on),
+scores all of them with ``stereocli.evaluate`` and prints one Markdown summary table plus a
+per-scene table per dataset; raw numbers go to JSON. ``--scoreboard`` also writes the committed
+``benchmarks/results/scoreboard.json``, from which ``benchmarks/render_docs.py`` writes the
+score tables of the README, ``docs/benchmarks.md`` and the presets' comments.
 
     python benchmarks/accuracy.py                          # default preset vs OpenCV, all scenes
     python benchmarks/accuracy.py --presets default,fast --scenes Adirondack,teddy
     python benchmarks/accuracy.py --datasets v2 --opencv 3way --threads 2 --repeat 3
+    python benchmarks/accuracy.py --datasets validation --presets default,quality --opencv 3way
     python benchmarks/accuracy.py --pandora ~/venvs/pandora/bin/pandora
 
 Scoring rules (stated again in the table header):
@@ -16,6 +20,10 @@ Scoring rules (stated again in the table header):
   bad, weighted average (0.5 for PianoL, Playroom, Playtable, Shelves, Vintage).
 * Middlebury 2001/2003: bad > 1.0 px, nonocc masks *derived* from the GT (MANIFEST rule),
   disparity ranges of the SGM paper (16, 32, 64, 64).
+* Validation (Middlebury 2005 Books, Dolls, Laundry, Moebius, Reindeer at ThirdSize; Middlebury
+  2001 barn1, barn2, bull, map, poster, sawtooth): v2 rules (bad > 1.0 px, nonocc masks derived
+  from the GT and checked against the right view's GT, estimates clipped to [0, ndisp]), ndisp =
+  the GT's largest disparity rounded up to a multiple of 16, plain mean of the scenes.
 Timing: every method runs once to warm up (numba compilation, OpenCV allocations), then the
 methods take turns for ``--repeat`` rounds (A, B, A, B, ...: a machine that slows down for a
 while, as shared machines do, slows every method alike) and each keeps its
@@ -60,17 +68,34 @@ V2_SCENES = {
     "teddy": ("middlebury2003/teddy", "im2", "im6", 64),
     "cones": ("middlebury2003/cones", "im2", "im6", 64),
 }
+#: Validation scenes (MANIFEST, "Validation scenes"; nothing was tuned on them): (folder, left,
+#: right, GT scale). The 2005 GT holds full-resolution disparities at every size: / 3 at ThirdSize.
+VALIDATION_SCENES = {
+    **{name: (f"middlebury2005/{name}", "view1.png", "view5.png", 3.0)
+       for name in ("Books", "Dolls", "Laundry", "Moebius", "Reindeer")},
+    **{name: (f"middlebury2001/{name}", "im2.ppm", "im6.ppm", 8.0)
+       for name in ("barn1", "barn2", "bull", "poster", "sawtooth")},
+    "map": ("middlebury2001/map", "im0.pgm", "im1.pgm", 8.0),
+}
+DATASETS = ("mb2014", "v2", "validation")
 OPENCV_METHODS = {"bm": "OpenCV BM", "sgbm": "OpenCV SGBM", "3way": "OpenCV SGBM 3WAY", "hh": "OpenCV SGBM HH"}
 
 
 @dataclass
 class Scene:
     name: str
-    dataset: str  # "mb2014" or "v2"
+    dataset: str  # "mb2014", "v2" or "validation"
     folder: Path
     left: np.ndarray
     right: np.ndarray
     ndisp: int
+    truth: object = None  # the loaded ground truth (stereocli.evaluate.datasets.Scene), validation scenes
+
+
+def ndisp_from_truth(gt: np.ndarray) -> int:
+    """Disparities to search for a ground truth (H, W) float32 px (+inf unknown): its largest
+    disparity, rounded up to a multiple of 16 that exceeds it (the range is [0, ndisp))."""
+    return int(16 * np.ceil((np.floor(gt[np.isfinite(gt)].max()) + 1) / 16))
 
 
 def find_image(folder: Path, stem: str) -> Path:
@@ -100,6 +125,17 @@ def load_scenes(data: Path, datasets: list[str], only: set[str] | None) -> list[
             if folder.is_dir():
                 scenes.append(Scene(name, "v2", folder, read_image(find_image(folder, left)),
                                     read_image(find_image(folder, right)), ndisp))
+    if "validation" in datasets:
+        for name, (sub, left, right, gt_scale) in VALIDATION_SCENES.items():
+            if only and name not in only:
+                continue
+            folder = data / sub
+            if folder.is_dir():
+                # The v2 loader reads both layouts given the scale: the smallest disp<k> is the left
+                # view's GT, a larger one the right view's, which the derived nonocc mask checks.
+                truth = load_scene(folder, dataset="middlebury2001", gt_scale=gt_scale)
+                scenes.append(Scene(name, "validation", folder, read_image(folder / left), read_image(folder / right),
+                                    ndisp_from_truth(truth.gt), truth))
     return scenes
 
 
@@ -232,11 +268,21 @@ def score(scene: Scene, disp: np.ndarray, seconds: float) -> dict:
     if scene.dataset == "mb2014":
         options = EvalOptions(resolution="Q", threshold_units="full")
         gt = load_scene(scene.folder, resolution="Q")
+    elif scene.truth is not None:
+        options = EvalOptions(ndisp=scene.ndisp)
+        gt = scene.truth
     else:
         options = EvalOptions(ndisp=scene.ndisp)
         gt = load_scene(scene.folder)
     result = evaluate_pair(disp, gt, options=options, time=seconds, name=scene.name)
     return result
+
+
+def validation_title(scenes: list[Scene]) -> str:
+    ranges = ", ".join(f"{s.name} {s.ndisp}" for s in scenes if s.dataset == "validation")
+    return ("Validation scenes, not tuned on (Middlebury 2005 ThirdSize, Middlebury 2001) — nonocc (masks derived "
+            "from the GT, checked against the right view's GT), bad > 1.0 / 2.0 px, ndisp = GT max rounded up to "
+            f"a multiple of 16 ({ranges}), mean of scenes")
 
 
 def fmt(v, digits=2) -> str:
@@ -272,7 +318,9 @@ def markdown(header, rows) -> str:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", type=Path, default=DEFAULT_DATA, help="../shared/data folder")
-    ap.add_argument("--datasets", default="mb2014,v2", help="mb2014 and/or v2")
+    ap.add_argument("--datasets", default=",".join(DATASETS),
+                    help="comma-separated: mb2014 (MiddEval3 trainingQ), v2 (Middlebury 2001/2003), "
+                         "validation (the scenes nothing was tuned on)")
     ap.add_argument("--scenes", default="", help="comma-separated scene subset")
     ap.add_argument("--presets", default="default", help="stereocli presets or YAML files, comma-separated")
     ap.add_argument("--set", dest="sets", action="append", default=[], help="--set for every preset")
@@ -294,7 +342,11 @@ def main(argv=None) -> int:
         numba.set_num_threads(args.threads)
         set_kernel_threads(args.threads)
     only = set(filter(None, args.scenes.split(","))) or None
-    scenes = load_scenes(args.data, args.datasets.split(","), only)
+    datasets = [d for d in args.datasets.split(",") if d]
+    unknown = sorted(set(datasets) - set(DATASETS))
+    if unknown:
+        ap.error(f"--datasets: unknown {', '.join(unknown)}; choose from {', '.join(DATASETS)}")
+    scenes = load_scenes(args.data, datasets, only)
     presets = [p for p in args.presets.split(",") if p]
     # The matcher sets its kernel threads from the config's runtime.threads on every call.
     sets = [*args.sets, f"runtime.threads={args.threads}"] if args.threads else args.sets
@@ -328,7 +380,8 @@ def main(argv=None) -> int:
     for dataset, title in (("mb2014", "MiddEval3 trainingQ — nonocc, invalid counted bad, thresholds in "
                                       "full-resolution px (bad 2.0 = 0.5 px at Q, bad 4.0 = 1 px at Q), weighted average"),
                            ("v2", "Middlebury 2001/2003 — nonocc (masks derived from GT, not the official masks), "
-                                  "bad > 1.0 / 2.0 px, ndisp 16/32/64/64, average of scenes")):
+                                  "bad > 1.0 / 2.0 px, ndisp 16/32/64/64, average of scenes"),
+                           ("validation", validation_title(scenes))):
         if not any(s.dataset == dataset for s in scenes):
             continue
         out.append(f"\n### {title}\n\n{threads} threads, best of {args.repeat} warm run(s).\n")
