@@ -34,7 +34,10 @@ noisy machine better than absolute seconds. (Pandora, a subprocess of seconds, r
 from __future__ import annotations
 
 import argparse
+import datetime
 import json
+import platform
+import shlex
 import shutil
 import subprocess
 import sys
@@ -56,6 +59,9 @@ from stereocli.io.images import read_image  # noqa: E402
 from stereocli.match.kernels import set_threads as set_kernel_threads  # noqa: E402
 from stereocli.match.pipeline import match_pair  # noqa: E402
 from stereocli.process import keep_freed_memory, prepare_kernels  # noqa: E402
+
+sys.path.insert(0, str(REPO / "benchmarks"))
+import scoreboard  # noqa: E402  (benchmarks/scoreboard.py)
 
 keep_freed_memory()  # as the command line does: freed buffers stay in the process between pairs
 prepare_kernels()  # as the command line does: idle kernel threads sleep, numba starts faster
@@ -315,6 +321,15 @@ def markdown(header, rows) -> str:
     return "\n".join(lines)
 
 
+def set_threads(threads: int) -> None:
+    """OpenCV's, numba's and the kernel pool's threads."""
+    import numba
+
+    cv2.setNumThreads(threads)
+    numba.set_num_threads(threads)
+    set_kernel_threads(threads)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", type=Path, default=DEFAULT_DATA, help="../shared/data folder")
@@ -330,17 +345,18 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=0, help="threads for OpenCV and numba (0 = all cores)")
     ap.add_argument("--repeat", type=int, default=1, help="timed runs per method (best kept)")
     ap.add_argument("--json", type=Path, default=REPO / "benchmarks" / "results" / "accuracy.json")
+    ap.add_argument("--scoreboard", type=Path, nargs="?", const=scoreboard.PATH, default=None,
+                    help="also put the scores into the committed scoreboard (default path: "
+                         "benchmarks/results/scoreboard.json), replacing the methods and datasets measured")
+    ap.add_argument("--keep-times", action="store_true",
+                    help="with --scoreboard: keep the scoreboard's times (a run for scores on a busy machine)")
     args = ap.parse_args(argv)
 
     if not (args.data / "MANIFEST.md").is_file():
         print(f"skipped: {args.data} not found (real-data benchmark)")
         return 0
     if args.threads:
-        import numba
-
-        cv2.setNumThreads(args.threads)
-        numba.set_num_threads(args.threads)
-        set_kernel_threads(args.threads)
+        set_threads(args.threads)
     only = set(filter(None, args.scenes.split(","))) or None
     datasets = [d for d in args.datasets.split(",") if d]
     unknown = sorted(set(datasets) - set(DATASETS))
@@ -376,12 +392,13 @@ def main(argv=None) -> int:
 
     method_names = list(methods)
     threads = args.threads or cv2.getNumThreads()
+    titles = {"mb2014": "MiddEval3 trainingQ — nonocc, invalid counted bad, thresholds in full-resolution px "
+                        "(bad 2.0 = 0.5 px at Q, bad 4.0 = 1 px at Q), weighted average",
+              "v2": "Middlebury 2001/2003 — nonocc (masks derived from GT, not the official masks), "
+                    "bad > 1.0 / 2.0 px, ndisp 16/32/64/64, average of scenes",
+              "validation": validation_title(scenes)}
     out = []
-    for dataset, title in (("mb2014", "MiddEval3 trainingQ — nonocc, invalid counted bad, thresholds in "
-                                      "full-resolution px (bad 2.0 = 0.5 px at Q, bad 4.0 = 1 px at Q), weighted average"),
-                           ("v2", "Middlebury 2001/2003 — nonocc (masks derived from GT, not the official masks), "
-                                  "bad > 1.0 / 2.0 px, ndisp 16/32/64/64, average of scenes"),
-                           ("validation", validation_title(scenes))):
+    for dataset, title in titles.items():
         if not any(s.dataset == dataset for s in scenes):
             continue
         out.append(f"\n### {title}\n\n{threads} threads, best of {args.repeat} warm run(s).\n")
@@ -403,7 +420,50 @@ def main(argv=None) -> int:
     args.json.parent.mkdir(parents=True, exist_ok=True)
     raw = [{k: v for k, v in r.items() if k != "result"} | {"scores": r["result"].as_dict()} for r in results.values()]
     args.json.write_text(json.dumps({"threads": threads, "repeat": args.repeat, "results": raw}, indent=2, default=str))
+    if args.scoreboard:
+        command = "python benchmarks/accuracy.py " + " ".join(shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv))
+        write_scoreboard(args.scoreboard, results, scenes, method_names, ref, titles, command=command.strip(),
+                         threads=threads, repeat=args.repeat, keep_times=args.keep_times)
+        print(f"# scoreboard: {args.scoreboard}", file=sys.stderr)
     return 0
+
+
+SCORE_KEYS = ("bad1.0", "bad2.0", "bad4.0", "avgerr", "invalid")
+
+
+def write_scoreboard(path: Path, results: dict, scenes: list[Scene], methods: list[str], ref: str | None,
+                     titles: dict[str, str], *, command: str, threads: int, repeat: int, keep_times: bool) -> None:
+    """Put this run's scores (and times, unless ``keep_times``) into the scoreboard at ``path``."""
+    import numba
+
+    board = scoreboard.load(path)
+    versions = {"python": platform.python_version(), "numpy": np.__version__, "numba": numba.__version__,
+                "opencv": cv2.__version__}
+    note = "scores of this run; its times are not used (busy machine)" if keep_times else ""
+    run_id = scoreboard.new_run(board, command=command, threads=threads, repeat=repeat, versions=versions,
+                                date=datetime.date.today().isoformat(), note=note)
+    for dataset in titles:
+        in_set = [s for s in scenes if s.dataset == dataset]
+        if not in_set:
+            continue
+        weights = {s.name: results[(s.name, methods[0])]["result"].weight for s in in_set}
+        board["datasets"][dataset] = {"title": titles[dataset],
+                                      "scenes": {s.name: {"weight": weights[s.name], "ndisp": s.ndisp} for s in in_set}}
+        for method in methods:
+            runs = [results[(s.name, method)] for s in in_set]
+            nonocc = weighted_average([r["result"] for r in runs]).get("nonocc") or {}
+            per_scene = {}
+            for s, r in zip(in_set, runs):
+                values = r["result"].metrics.get("nonocc") or {}
+                per_scene[s.name] = {k: values.get(k) for k in SCORE_KEYS}
+                per_scene[s.name]["seconds"] = r["seconds"]
+                per_scene[s.name]["x3way"] = r["seconds"] / results[(s.name, ref)]["seconds"] if ref else None
+            seconds = sum(r["seconds"] for r in runs)
+            totals = {"seconds": seconds, "mde_per_s": sum(r["mde"] for r in runs) / 1e6 / seconds,
+                      "x3way": seconds / sum(results[(s.name, ref)]["seconds"] for s in in_set) if ref else None}
+            scoreboard.record(board, method, dataset, run_id=run_id, average={k: nonocc.get(k) for k in SCORE_KEYS},
+                              scenes=per_scene, time=totals, in_turns="Pandora" not in method, keep_times=keep_times)
+    scoreboard.save(board, path)
 
 
 if __name__ == "__main__":
