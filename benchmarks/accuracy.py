@@ -439,7 +439,7 @@ def write_scoreboard(path: Path, results: dict, scenes: list[Scene], methods: li
     board = scoreboard.load(path)
     versions = {"python": platform.python_version(), "numpy": np.__version__, "numba": numba.__version__,
                 "opencv": cv2.__version__}
-    note = "scores of this run; its times are not used (busy machine)" if keep_times else ""
+    note = "its times are not used (--keep-times: a busy machine)" if keep_times else ""
     run_id = scoreboard.new_run(board, command=command, threads=threads, repeat=repeat, versions=versions,
                                 date=datetime.date.today().isoformat(), note=note)
     for dataset in titles:

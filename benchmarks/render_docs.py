@@ -209,10 +209,11 @@ def runs(board: Board) -> str:
     lines = []
     for run_id, run in board.data["runs"].items():
         what = " and ".join(sorted(used.get(run_id, ())))
-        machine = f"{run['cpu']}, {run['cores']} cores, {run['threads']} threads, best of {run['repeat']}"
+        threads = f"{run['threads']} thread{'s' if run['threads'] != 1 else ''}"
+        machine = f"{run['cpu']}, {run['cores']} cores, {threads}, best of {run['repeat']}"
         date = f", {run['date']}" if run.get("date") else ""
-        note = f" ({run['note']})" if run.get("note") else ""
-        lines.append(f"- `{run_id}`, {what}: `{run['command']}`; {machine}{date}{note}.")
+        note = f" {run['note'][0].upper()}{run['note'][1:]}." if run.get("note") else ""
+        lines.append(f"- `{run_id}` ({what}): `{run['command']}` on {machine}{date}.{note}")
     return "\n".join(lines)
 
 
@@ -228,7 +229,7 @@ def pair_text(values: list[float | None], best: list[bool]) -> str:
 
 
 def readme_presets(board: Board) -> str:
-    presets = board.presets()
+    presets = [p for p in LADDER if p in board.presets()] + [p for p in board.presets() if p not in LADDER]
     columns = {p: ([board.average(f"stereocli {p}", "mb2014", k) for k in ("bad2.0", "bad4.0")],
                    [board.scene(f"stereocli {p}", "v2", s, "bad1.0") for s in V2_SCENES],
                    [board.average(f"stereocli {p}", "validation", "bad1.0")]) for p in presets}
@@ -269,10 +270,10 @@ def readme_ladder(board: Board) -> str:
     times = [board.time(x, "mb2014", "x3way") for x in m]
     order = ", ".join(f"`{p}`" for p in ladder)
     slower = _ladder_claim(times, falling=False)
-    more_accurate = all(_ladder_claim(v, falling=True) for v in (bad2, v2[1:], validation[1:]))
-    claim = ("each is slower than the one before and more accurate on MiddEval3, on the v2 average and on the "
-             "validation mean" if slower and more_accurate else "in that order")
-    text = (f"Along the ladder ({order}) {claim}: MiddEval3 bad-2.0 {' / '.join(num(v) for v in bad2)}; "
+    more_accurate = all(_ladder_claim(v, falling=True) for v in (bad2, v2, validation))
+    claim = (" each preset is slower than the one before it and more accurate on MiddEval3, on the v2 average and "
+             "on the validation mean" if slower and more_accurate else "")
+    text = (f"Along the ladder ({order}){claim}: MiddEval3 bad-2.0 {' / '.join(num(v) for v in bad2)}; "
             f"v2 average {' / '.join(num(v) for v in v2)}; validation mean {' / '.join(num(v) for v in validation)} %.")
     d, q, a = "stereocli default", "stereocli quality", "stereocli accurate"
     if all(board.entry(x, "mb2014") for x in (d, q, a)):
@@ -315,9 +316,9 @@ def preset_comment(board: Board, preset: str) -> str:
     if board.entry(method, "mb2014") is None:
         return f"Not on the scoreboard yet ({SCOREBOARD.relative_to(REPO)})."
     bad = [num(board.average(method, "mb2014", k)) for k in ("bad2.0", "bad4.0")]
-    v2 = " / ".join(num(board.scene(method, "v2", s, "bad1.0")) for s in V2_SCENES)
+    v2 = "/".join(num(board.scene(method, "v2", s, "bad1.0")) for s in V2_SCENES)  # one word: wrapped whole
     text = (f"Scores: MiddEval3-Q {bad[0]} % bad-2.0 / {bad[1]} % bad-4.0 (weighted); Middlebury v2 {v2} % bad > 1 "
-            f"(Tsukuba / Venus / Teddy / Cones); validation {num(board.average(method, 'validation', 'bad1.0'))} % "
+            f"(Tsukuba/Venus/Teddy/Cones); validation {num(board.average(method, 'validation', 'bad1.0'))} % "
             f"bad > 1 (mean of {len(board.scenes('validation'))} scenes not tuned on); time "
             f"{ratio(board, method, 'mb2014')}x OpenCV SGBM 3WAY's (MiddEval3-Q).")
     if preset != "default" and board.entry("stereocli default", "mb2014"):
@@ -379,7 +380,9 @@ def render_text(text: str, board: Board, *, yaml: bool, where: str) -> str:
         if yaml:
             lines = textwrap.wrap(body, width=98, break_on_hyphens=False)
             return match.group(1) + "".join(f"# {line}\n" for line in lines) + match.group(4)
-        return match.group(1) + body + "\n" + match.group(4)
+        chunks = [chunk if chunk.startswith(("|", "- ")) else textwrap.fill(chunk, width=96, break_on_hyphens=False)
+                  for chunk in body.split("\n\n")]
+        return match.group(1) + "\n\n".join(chunks) + "\n" + match.group(4)
 
     return (YAML_BLOCK if yaml else MARKDOWN_BLOCK).sub(replace, text)
 

@@ -293,15 +293,18 @@ def column_pattern(state: MatchState, p: ColumnPatternParams) -> None:
     and ``min_significance`` standard errors, subtracts it from every channel (each measured on
     its own). Views without the pattern are left untouched. The amplitudes go into the match
     record (``stage_notes``).
+
+    No bundled preset runs it: its gain rests on one scene (Tsukuba, whose camera has the
+    pattern), and none of the validation scenes has the pattern, so it shows no gain there. Put
+    it first in ``preprocess`` for a camera that has one.
     """
     note = {}
     for which in ("left", "right"):
         valid = state.left_valid if which == "left" else state.right_valid
         image = state.left if which == "left" else state.right
-        # The grey of every eighth row tells a pattern apart from none for a fraction of a
-        # millisecond (Tsukuba's views: 0.66 and 0.68 grey levels, 5.1 and 6.5 standard errors;
-        # every other benchmark view at most 0.07 and 0.5); views that have one are then
-        # measured on every other row, per channel.
+        # The grey of every eighth row tells a pattern apart from none (Tsukuba's views: 0.66 and
+        # 0.68 grey levels, 5.1 and 6.5 standard errors; every other benchmark view at most 0.11
+        # and 0.5); views that have one are then measured on every other row, per channel.
         rows = np.ascontiguousarray(image[::_DETECTION_ROW_STEP])
         found = measure_column_pattern(rows if rows.ndim == 2 else luma(rows), window=p.window, clip=p.clip,
                                        valid=None if valid is None else valid[::_DETECTION_ROW_STEP])
