@@ -86,7 +86,8 @@ def main(argv=None) -> int:
     rows = []
     with tempfile.TemporaryDirectory(prefix="ablation-") as tmp:
         for preset in filter(None, args.presets.split(",")):
-            variants = {stage: without_stage(preset, stage, Path(tmp)) for stage in filter(None, args.stages.split(","))}
+            stages = filter(None, args.stages.split(","))
+            variants = {stage: without_stage(preset, stage, Path(tmp)) for stage in stages}
             variants = {stage: path for stage, path in variants.items() if path is not None}
             if not variants:
                 continue
@@ -96,8 +97,8 @@ def main(argv=None) -> int:
                 gain = round(other["validation"], 2) - round(base["validation"], 2)
                 rows.append({"preset": preset, "stage": stage, "with": base, "without": other,
                              "replacement": REPLACEMENTS.get(stage), "kept": gain > 0})
-                print(f"# {preset} {stage}: validation {base['validation']:.2f} with, {other['validation']:.2f} without",
-                      file=sys.stderr)
+                print(f"# {preset} {stage}: validation {base['validation']:.2f} with, "
+                      f"{other['validation']:.2f} without", file=sys.stderr)
     header = ["preset", "stage", "validation bad1 with / without", "MiddEval3-Q bad2.0 with / without",
               "v2 bad1 with / without", "decision"]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]

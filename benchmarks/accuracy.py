@@ -421,7 +421,8 @@ def main(argv=None) -> int:
     raw = [{k: v for k, v in r.items() if k != "result"} | {"scores": r["result"].as_dict()} for r in results.values()]
     args.json.write_text(json.dumps({"threads": threads, "repeat": args.repeat, "results": raw}, indent=2, default=str))
     if args.scoreboard:
-        command = "python benchmarks/accuracy.py " + " ".join(shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv))
+        given = sys.argv[1:] if argv is None else argv
+        command = "python benchmarks/accuracy.py " + " ".join(shlex.quote(a) for a in given)
         write_scoreboard(args.scoreboard, results, scenes, method_names, ref, titles, command=command.strip(),
                          threads=threads, repeat=args.repeat, keep_times=args.keep_times)
         print(f"# scoreboard: {args.scoreboard}", file=sys.stderr)

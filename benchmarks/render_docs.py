@@ -283,7 +283,8 @@ def readme_ladder(board: Board) -> str:
         a_wins = sum(board.scene(a, "mb2014", s, "bad2.0") < board.scene(d, "mb2014", s, "bad2.0") for s in scenes)
         q_time = board.time(q, "mb2014", "x3way") / board.time(d, "mb2014", "x3way")
         a_time = board.time(a, "mb2014", "x3way") / board.time(d, "mb2014", "x3way")
-        q_where = "every MiddEval3 scene" if q_wins == len(scenes) else f"{q_wins} of the {len(scenes)} MiddEval3 scenes"
+        q_where = ("every MiddEval3 scene" if q_wins == len(scenes)
+                   else f"{q_wins} of the {len(scenes)} MiddEval3 scenes")
         text += (f" `quality` beats the default's bad-2.0 and bad-4.0 on {q_where} in {q_time:.1f}× its time; "
                  f"`accurate` ({a_time:.1f}×) its bad-2.0 on {a_wins} of the {len(scenes)}.")
     return text
