@@ -52,6 +52,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from stereocli.config import preset_names  # noqa: E402
 from stereocli.match.config import build_config  # noqa: E402
 from stereocli.evaluate.api import EvalOptions, evaluate_pair, weighted_average  # noqa: E402
 from stereocli.evaluate.datasets import load_scene  # noqa: E402
@@ -362,8 +363,11 @@ def main(argv=None) -> int:
     unknown = sorted(set(datasets) - set(DATASETS))
     if unknown:
         ap.error(f"--datasets: unknown {', '.join(unknown)}; choose from {', '.join(DATASETS)}")
-    scenes = load_scenes(args.data, datasets, only)
     presets = [p for p in args.presets.split(",") if p]
+    if args.scoreboard and (only or args.sets or set(presets) - set(preset_names())):
+        ap.error("--scoreboard records whole datasets of the bundled presets as they are: "
+                 "not with --scenes, --set or a config file")
+    scenes = load_scenes(args.data, datasets, only)
     # The matcher sets its kernel threads from the config's runtime.threads on every call.
     sets = [*args.sets, f"runtime.threads={args.threads}"] if args.threads else args.sets
     configs = {p: build_config([p], sets) for p in presets}
