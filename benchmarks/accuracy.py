@@ -1,13 +1,17 @@
 #!/usr/bin/env python3
 """Accuracy/speed harness: stereocli presets vs OpenCV (and optionally CNES Pandora), side by side.
 
-Runs every method on every scene of ``../shared/data`` (MiddEval3 trainingQ and the
-Middlebury 2001/2003 scenes), scores all of them with ``stereocli.evaluate`` and prints one
-Markdown summary table plus a per-scene table; raw numbers go to JSON.
+Runs every method on every scene of ``../shared/data`` (MiddEval3 trainingQ, the Middlebury
+2001/2003 scenes the presets were tuned on, and the validation scenes nothing was tuned on),
+scores all of them with ``stereocli.evaluate`` and prints one Markdown summary table plus a
+per-scene table per dataset; raw numbers go to JSON. ``--scoreboard`` also writes the committed
+``benchmarks/results/scoreboard.json``, from which ``benchmarks/render_docs.py`` writes the
+score tables of the README, ``docs/benchmarks.md`` and the presets' comments.
 
     python benchmarks/accuracy.py                          # default preset vs OpenCV, all scenes
     python benchmarks/accuracy.py --presets default,fast --scenes Adirondack,teddy
     python benchmarks/accuracy.py --datasets v2 --opencv 3way --threads 2 --repeat 3
+    python benchmarks/accuracy.py --datasets validation --presets default,quality --opencv 3way
     python benchmarks/accuracy.py --pandora ~/venvs/pandora/bin/pandora
 
 Scoring rules (stated again in the table header):
@@ -16,6 +20,10 @@ Scoring rules (stated again in the table header):
   bad, weighted average (0.5 for PianoL, Playroom, Playtable, Shelves, Vintage).
 * Middlebury 2001/2003: bad > 1.0 px, nonocc masks *derived* from the GT (MANIFEST rule),
   disparity ranges of the SGM paper (16, 32, 64, 64).
+* Validation (Middlebury 2005 Books, Dolls, Laundry, Moebius, Reindeer at ThirdSize; Middlebury
+  2001 barn1, barn2, bull, map, poster, sawtooth): v2 rules (bad > 1.0 px, nonocc masks derived
+  from the GT and checked against the right view's GT, estimates clipped to [0, ndisp]), ndisp =
+  the GT's largest disparity rounded up to a multiple of 16, plain mean of the scenes.
 Timing: every method runs once to warm up (numba compilation, OpenCV allocations), then the
 methods take turns for ``--repeat`` rounds (A, B, A, B, ...: a machine that slows down for a
 while, as shared machines do, slows every method alike) and each keeps its
@@ -26,7 +34,10 @@ noisy machine better than absolute seconds. (Pandora, a subprocess of seconds, r
 from __future__ import annotations
 
 import argparse
+import datetime
 import json
+import platform
+import shlex
 import shutil
 import subprocess
 import sys
@@ -41,6 +52,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from stereocli.config import preset_names  # noqa: E402
 from stereocli.match.config import build_config  # noqa: E402
 from stereocli.evaluate.api import EvalOptions, evaluate_pair, weighted_average  # noqa: E402
 from stereocli.evaluate.datasets import load_scene  # noqa: E402
@@ -48,6 +60,9 @@ from stereocli.io.images import read_image  # noqa: E402
 from stereocli.match.kernels import set_threads as set_kernel_threads  # noqa: E402
 from stereocli.match.pipeline import match_pair  # noqa: E402
 from stereocli.process import keep_freed_memory, prepare_kernels  # noqa: E402
+
+sys.path.insert(0, str(REPO / "benchmarks"))
+import scoreboard  # noqa: E402  (benchmarks/scoreboard.py)
 
 keep_freed_memory()  # as the command line does: freed buffers stay in the process between pairs
 prepare_kernels()  # as the command line does: idle kernel threads sleep, numba starts faster
@@ -60,17 +75,34 @@ V2_SCENES = {
     "teddy": ("middlebury2003/teddy", "im2", "im6", 64),
     "cones": ("middlebury2003/cones", "im2", "im6", 64),
 }
+#: Validation scenes (MANIFEST, "Validation scenes"; nothing was tuned on them): (folder, left,
+#: right, GT scale). The 2005 GT holds full-resolution disparities at every size: / 3 at ThirdSize.
+VALIDATION_SCENES = {
+    **{name: (f"middlebury2005/{name}", "view1.png", "view5.png", 3.0)
+       for name in ("Books", "Dolls", "Laundry", "Moebius", "Reindeer")},
+    **{name: (f"middlebury2001/{name}", "im2.ppm", "im6.ppm", 8.0)
+       for name in ("barn1", "barn2", "bull", "poster", "sawtooth")},
+    "map": ("middlebury2001/map", "im0.pgm", "im1.pgm", 8.0),
+}
+DATASETS = ("mb2014", "v2", "validation")
 OPENCV_METHODS = {"bm": "OpenCV BM", "sgbm": "OpenCV SGBM", "3way": "OpenCV SGBM 3WAY", "hh": "OpenCV SGBM HH"}
 
 
 @dataclass
 class Scene:
     name: str
-    dataset: str  # "mb2014" or "v2"
+    dataset: str  # "mb2014", "v2" or "validation"
     folder: Path
     left: np.ndarray
     right: np.ndarray
     ndisp: int
+    truth: object = None  # the loaded ground truth (stereocli.evaluate.datasets.Scene), validation scenes
+
+
+def ndisp_from_truth(gt: np.ndarray) -> int:
+    """Disparities to search for a ground truth (H, W) float32 px (+inf unknown): its largest
+    disparity, rounded up to a multiple of 16 that exceeds it (the range is [0, ndisp))."""
+    return int(16 * np.ceil((np.floor(gt[np.isfinite(gt)].max()) + 1) / 16))
 
 
 def find_image(folder: Path, stem: str) -> Path:
@@ -100,6 +132,17 @@ def load_scenes(data: Path, datasets: list[str], only: set[str] | None) -> list[
             if folder.is_dir():
                 scenes.append(Scene(name, "v2", folder, read_image(find_image(folder, left)),
                                     read_image(find_image(folder, right)), ndisp))
+    if "validation" in datasets:
+        for name, (sub, left, right, gt_scale) in VALIDATION_SCENES.items():
+            if only and name not in only:
+                continue
+            folder = data / sub
+            if folder.is_dir():
+                # The v2 loader reads both layouts given the scale: the smallest disp<k> is the left
+                # view's GT, a larger one the right view's, which the derived nonocc mask checks.
+                truth = load_scene(folder, dataset="middlebury2001", gt_scale=gt_scale)
+                scenes.append(Scene(name, "validation", folder, read_image(folder / left), read_image(folder / right),
+                                    ndisp_from_truth(truth.gt), truth))
     return scenes
 
 
@@ -232,11 +275,21 @@ def score(scene: Scene, disp: np.ndarray, seconds: float) -> dict:
     if scene.dataset == "mb2014":
         options = EvalOptions(resolution="Q", threshold_units="full")
         gt = load_scene(scene.folder, resolution="Q")
+    elif scene.truth is not None:
+        options = EvalOptions(ndisp=scene.ndisp)
+        gt = scene.truth
     else:
         options = EvalOptions(ndisp=scene.ndisp)
         gt = load_scene(scene.folder)
     result = evaluate_pair(disp, gt, options=options, time=seconds, name=scene.name)
     return result
+
+
+def validation_title(scenes: list[Scene]) -> str:
+    ranges = ", ".join(f"{s.name} {s.ndisp}" for s in scenes if s.dataset == "validation")
+    return ("Validation scenes, not tuned on (Middlebury 2005 ThirdSize, Middlebury 2001) — nonocc (masks derived "
+            "from the GT, checked against the right view's GT), bad > 1.0 / 2.0 px, ndisp = GT max rounded up to "
+            f"a multiple of 16 ({ranges}), mean of scenes")
 
 
 def fmt(v, digits=2) -> str:
@@ -269,10 +322,21 @@ def markdown(header, rows) -> str:
     return "\n".join(lines)
 
 
+def set_threads(threads: int) -> None:
+    """OpenCV's, numba's and the kernel pool's threads."""
+    import numba
+
+    cv2.setNumThreads(threads)
+    numba.set_num_threads(threads)
+    set_kernel_threads(threads)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", type=Path, default=DEFAULT_DATA, help="../shared/data folder")
-    ap.add_argument("--datasets", default="mb2014,v2", help="mb2014 and/or v2")
+    ap.add_argument("--datasets", default=",".join(DATASETS),
+                    help="comma-separated: mb2014 (MiddEval3 trainingQ), v2 (Middlebury 2001/2003), "
+                         "validation (the scenes nothing was tuned on)")
     ap.add_argument("--scenes", default="", help="comma-separated scene subset")
     ap.add_argument("--presets", default="default", help="stereocli presets or YAML files, comma-separated")
     ap.add_argument("--set", dest="sets", action="append", default=[], help="--set for every preset")
@@ -282,20 +346,28 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=0, help="threads for OpenCV and numba (0 = all cores)")
     ap.add_argument("--repeat", type=int, default=1, help="timed runs per method (best kept)")
     ap.add_argument("--json", type=Path, default=REPO / "benchmarks" / "results" / "accuracy.json")
+    ap.add_argument("--scoreboard", type=Path, nargs="?", const=scoreboard.PATH, default=None,
+                    help="also put the scores into the committed scoreboard (default path: "
+                         "benchmarks/results/scoreboard.json), replacing the methods and datasets measured")
+    ap.add_argument("--keep-times", action="store_true",
+                    help="with --scoreboard: keep the scoreboard's times (a run for scores on a busy machine)")
     args = ap.parse_args(argv)
 
     if not (args.data / "MANIFEST.md").is_file():
         print(f"skipped: {args.data} not found (real-data benchmark)")
         return 0
     if args.threads:
-        import numba
-
-        cv2.setNumThreads(args.threads)
-        numba.set_num_threads(args.threads)
-        set_kernel_threads(args.threads)
+        set_threads(args.threads)
     only = set(filter(None, args.scenes.split(","))) or None
-    scenes = load_scenes(args.data, args.datasets.split(","), only)
+    datasets = [d for d in args.datasets.split(",") if d]
+    unknown = sorted(set(datasets) - set(DATASETS))
+    if unknown:
+        ap.error(f"--datasets: unknown {', '.join(unknown)}; choose from {', '.join(DATASETS)}")
     presets = [p for p in args.presets.split(",") if p]
+    if args.scoreboard and (only or args.sets or set(presets) - set(preset_names())):
+        ap.error("--scoreboard records whole datasets of the bundled presets as they are: "
+                 "not with --scenes, --set or a config file")
+    scenes = load_scenes(args.data, datasets, only)
     # The matcher sets its kernel threads from the config's runtime.threads on every call.
     sets = [*args.sets, f"runtime.threads={args.threads}"] if args.threads else args.sets
     configs = {p: build_config([p], sets) for p in presets}
@@ -324,11 +396,13 @@ def main(argv=None) -> int:
 
     method_names = list(methods)
     threads = args.threads or cv2.getNumThreads()
+    titles = {"mb2014": "MiddEval3 trainingQ — nonocc, invalid counted bad, thresholds in full-resolution px "
+                        "(bad 2.0 = 0.5 px at Q, bad 4.0 = 1 px at Q), weighted average",
+              "v2": "Middlebury 2001/2003 — nonocc (masks derived from GT, not the official masks), "
+                    "bad > 1.0 / 2.0 px, ndisp 16/32/64/64, average of scenes",
+              "validation": validation_title(scenes)}
     out = []
-    for dataset, title in (("mb2014", "MiddEval3 trainingQ — nonocc, invalid counted bad, thresholds in "
-                                      "full-resolution px (bad 2.0 = 0.5 px at Q, bad 4.0 = 1 px at Q), weighted average"),
-                           ("v2", "Middlebury 2001/2003 — nonocc (masks derived from GT, not the official masks), "
-                                  "bad > 1.0 / 2.0 px, ndisp 16/32/64/64, average of scenes")):
+    for dataset, title in titles.items():
         if not any(s.dataset == dataset for s in scenes):
             continue
         out.append(f"\n### {title}\n\n{threads} threads, best of {args.repeat} warm run(s).\n")
@@ -350,7 +424,51 @@ def main(argv=None) -> int:
     args.json.parent.mkdir(parents=True, exist_ok=True)
     raw = [{k: v for k, v in r.items() if k != "result"} | {"scores": r["result"].as_dict()} for r in results.values()]
     args.json.write_text(json.dumps({"threads": threads, "repeat": args.repeat, "results": raw}, indent=2, default=str))
+    if args.scoreboard:
+        given = sys.argv[1:] if argv is None else argv
+        command = "python benchmarks/accuracy.py " + " ".join(shlex.quote(a) for a in given)
+        write_scoreboard(args.scoreboard, results, scenes, method_names, ref, titles, command=command.strip(),
+                         threads=threads, repeat=args.repeat, keep_times=args.keep_times)
+        print(f"# scoreboard: {args.scoreboard}", file=sys.stderr)
     return 0
+
+
+SCORE_KEYS = ("bad1.0", "bad2.0", "bad4.0", "avgerr", "invalid")
+
+
+def write_scoreboard(path: Path, results: dict, scenes: list[Scene], methods: list[str], ref: str | None,
+                     titles: dict[str, str], *, command: str, threads: int, repeat: int, keep_times: bool) -> None:
+    """Put this run's scores (and times, unless ``keep_times``) into the scoreboard at ``path``."""
+    import numba
+
+    board = scoreboard.load(path)
+    versions = {"python": platform.python_version(), "numpy": np.__version__, "numba": numba.__version__,
+                "opencv": cv2.__version__}
+    note = "its times are not used (--keep-times: a busy machine)" if keep_times else ""
+    run_id = scoreboard.new_run(board, command=command, threads=threads, repeat=repeat, versions=versions,
+                                date=datetime.date.today().isoformat(), note=note)
+    for dataset in titles:
+        in_set = [s for s in scenes if s.dataset == dataset]
+        if not in_set:
+            continue
+        weights = {s.name: results[(s.name, methods[0])]["result"].weight for s in in_set}
+        board["datasets"][dataset] = {"title": titles[dataset],
+                                      "scenes": {s.name: {"weight": weights[s.name], "ndisp": s.ndisp} for s in in_set}}
+        for method in methods:
+            runs = [results[(s.name, method)] for s in in_set]
+            nonocc = weighted_average([r["result"] for r in runs]).get("nonocc") or {}
+            per_scene = {}
+            for s, r in zip(in_set, runs):
+                values = r["result"].metrics.get("nonocc") or {}
+                per_scene[s.name] = {k: values.get(k) for k in SCORE_KEYS}
+                per_scene[s.name]["seconds"] = r["seconds"]
+                per_scene[s.name]["x3way"] = r["seconds"] / results[(s.name, ref)]["seconds"] if ref else None
+            seconds = sum(r["seconds"] for r in runs)
+            totals = {"seconds": seconds, "mde_per_s": sum(r["mde"] for r in runs) / 1e6 / seconds,
+                      "x3way": seconds / sum(results[(s.name, ref)]["seconds"] for s in in_set) if ref else None}
+            scoreboard.record(board, method, dataset, run_id=run_id, average={k: nonocc.get(k) for k in SCORE_KEYS},
+                              scenes=per_scene, time=totals, in_turns="Pandora" not in method, keep_times=keep_times)
+    scoreboard.save(board, path)
 
 
 if __name__ == "__main__":

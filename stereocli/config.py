@@ -83,7 +83,7 @@ def check_yaml_limits(text: str, where: str) -> None:
     :data:`YAML_MAX_DEPTH` or expands to more than :data:`YAML_MAX_VALUES` values.
 
     Works on the parser's event stream (no recursion, nothing expanded), stopping at the first
-    event over a limit, so a hostile document fails in milliseconds.
+    event over a limit, so a hostile document fails before it is built.
     """
     if len(text) > YAML_MAX_BYTES:
         raise ConfigError(f"{where}: {len(text)} characters; a config is at most {YAML_MAX_BYTES // 1024} KiB")

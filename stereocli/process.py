@@ -6,9 +6,9 @@ matching does not pay for fresh pages on every pair.
 
 Each pair allocates and frees tens of MiB (cost volumes, path sums, maps). glibc serves blocks
 above ``M_MMAP_THRESHOLD`` (128 KiB, rising to at most 32 MiB) with fresh ``mmap`` pages and
-returns them on ``free``, so the next pair touches new pages again: on the benchmark machine
-that was 1,500–5,000 page faults and 10–25 ms per MiddEval3 Q pair, as much as OpenCV's whole
-SGBM (which keeps its buffers inside the matcher object between calls). Raising both
+returns them on ``free``, so the next pair touches new pages again: thousands of page faults
+per MiddEval3 Q pair, which OpenCV's SGBM avoids by keeping its buffers inside the matcher object
+between calls. Raising both
 thresholds keeps the blocks on the heap for reuse. The price is that RSS stays near the peak
 between pairs instead of dropping.
 
@@ -59,15 +59,13 @@ def keep_freed_memory() -> bool:
 # --- the compiled kernels' start-up -----------------------------------------------------------
 
 #: Environment of the kernels' OpenMP thread team, set before numba starts it (a value the user
-#: set wins). Between two parallel regions GNU OpenMP's idle threads spin for milliseconds by
-#: default (``GOMP_SPINCOUNT`` 300000); with the other core busy (another job, ``make -j``) a
-#: spinning thread holds the core the working one needs, and the default batch over MiddEval3-Q
-#: took 1.5-1.7x its one-thread time (2.8x on a busier machine). With these settings idle
-#: threads spin 10000 rounds (a few microseconds, enough for the next region of the same pair),
-#: then sleep: the batch takes 1.0x its one-thread time under load and as long as with the
-#: default spinning on an idle machine; sleeping at once (``GOMP_SPINCOUNT=0``) costs 3-8 % on
-#: an idle machine, where every region then wakes a sleeping thread
-#: (``benchmarks/shared_machine.py``). Other OpenMP runtimes read ``OMP_WAIT_POLICY`` only.
+#: set wins). Between two parallel regions GNU OpenMP's idle threads spin by default
+#: (``GOMP_SPINCOUNT`` 300000); with the other core busy (another job, ``make -j``) a spinning
+#: thread holds the core the working one needs, and a batch takes longer than with one thread.
+#: With these settings idle threads spin 10000 rounds (long enough for the next region of the
+#: same pair), then sleep; sleeping at once (``GOMP_SPINCOUNT=0``) would make every region wake a
+#: sleeping thread on an idle machine (``benchmarks/shared_machine.py`` measures both). Other
+#: OpenMP runtimes read ``OMP_WAIT_POLICY`` only.
 KERNEL_THREAD_ENV = {"OMP_WAIT_POLICY": "passive", "GOMP_SPINCOUNT": "10000"}
 
 
@@ -79,13 +77,13 @@ class _NumbaStart(importlib.abc.MetaPathFinder):
     * Starts the compile watch of :func:`notify_compilation`.
     * Fails the one ``scipy.linalg`` import numba makes there: ``numba.np.arraymath`` imports
       ``scipy.linalg.cython_blas`` while it is being imported itself, only to choose how
-      ``np.convolve``/``np.correlate`` are compiled; with SciPy installed that import takes about
-      0.2 s of every process. No stereocli kernel uses those functions or BLAS, and a fresh
+      ``np.convolve``/``np.correlate`` are compiled; with SciPy installed every process would pay
+      for that import. No stereocli kernel uses those functions or BLAS, and a fresh
       install has no SciPy at all (it is no dependency), so the probe fails, as there. Every
       other ``scipy.linalg`` import proceeds normally.
     * Fails the ``cffi`` import of ``numba.core.typing.cffi_utils`` in the same way: with cffi
-      installed (other packages bring it), numba imports it and builds a C parser, 0.02 s of
-      every process, to type cffi functions passed to kernels; stereocli passes none.
+      installed (other packages bring it), numba imports it and builds a C parser in every
+      process, to type cffi functions passed to kernels; stereocli passes none.
     """
 
     def find_spec(self, name, path=None, target=None):
@@ -108,10 +106,9 @@ _kernels_prepared = False
 #: numpy is imported (a value the user set wins). stereocli multiplies no large matrices (its
 #: largest BLAS call is an image's pixels times three luma weights; plane fits are a few
 #: hundred rows), but a multi-threaded OpenBLAS starts a thread per core when numpy is imported,
-#: and that thread spins, waiting for work: a tenth of the CPU time of a one-pair ``stereocli
-#: match`` process, on the cores the kernels need. With one BLAS thread there is none. On an
-#: idle two-core machine the pair process gets only 1-4 % faster (``benchmarks/startup.py``);
-#: the CPU time it frees counts when the machine is shared.
+#: and that thread spins, waiting for work, on the cores the kernels need. With one BLAS thread
+#: there is none; the CPU time it frees counts most when the machine is shared
+#: (``benchmarks/startup.py``).
 BLAS_THREAD_ENV = {"OPENBLAS_NUM_THREADS": "1"}
 
 
@@ -128,8 +125,7 @@ def prepare_kernels() -> None:
     """Settings for the compiled kernels that must precede numba's start (once per process):
     :data:`KERNEL_THREAD_ENV`, and the start hook :class:`_NumbaStart`. Also freezes the
     objects left at exit (``gc.freeze`` as the last exit handler), so the interpreter's final
-    cycle collections do not walk numba's compiler objects: 0.1 s per process. Every output is
-    closed by then."""
+    cycle collections do not walk numba's many compiler objects. Every output is closed by then."""
     global _kernels_prepared
     if _kernels_prepared:
         return

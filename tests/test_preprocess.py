@@ -88,6 +88,6 @@ def test_invalid_parameters(name, values, key):
 
 def test_preprocess_list_through_config():
     cfg = build_config(["realtime"])
-    assert [c.stage.name for c in cfg.preprocess] == ["column_pattern", "mean_removal"]
+    assert [c.stage.name for c in cfg.preprocess] == ["mean_removal"]
     with pytest.raises(ConfigError, match="sigma"):
         build_config(["realtime"], sets=["preprocess.mean_removal.sigma=2"])

@@ -141,7 +141,7 @@ def test_the_match_record_holds_the_fit(run_cli, tmp_path):
     params = json.loads((out / "planes" / "params.json").read_text())
     note = params["stage_notes"]["row_align"]
     assert set(note) >= {"applied", "offset_px", "tilt_x_px", "tilt_y_px", "tracks"}
-    assert [stage["name"] for stage in params["config"]["preprocess"]] == ["column_pattern", "row_align"]
+    assert [stage["name"] for stage in params["config"]["preprocess"]] == ["row_align"]
     # -v prints each pair's fit on one line.
     r = run_cli("match", tmp_path / "scenes" / "planes", "-o", tmp_path / "verbose", "-v")
     assert r.code == 0 and any(line.startswith("planes: row_align: tracks_found ") for line in r.err.splitlines())

@@ -91,7 +91,7 @@ def row_alignment(matches: PointMatches, *, threshold: float = DEFAULT_THRESHOLD
 
 def _quantile(values: np.ndarray, q: float) -> float:
     """``np.quantile(values, q)`` (linear interpolation) of a non-empty 1-D array. Written out
-    because NumPy's median and quantiles import ``numpy.ma``, 7 ms of every process's start."""
+    because NumPy's median and quantiles import ``numpy.ma``, which every process would then load."""
     ordered = np.sort(values)
     position = q * (len(ordered) - 1)
     below = int(np.floor(position))

@@ -112,12 +112,11 @@ def track_rows(left_grey: np.ndarray, right_grey: np.ndarray, *, disparity_range
     ``x_left − x_right`` in ``disparity_range`` (px, inclusive) and a vertical one within
     ``max_offset`` + 1 px. Grey images (H, W) float32 in [0, 255]. ``scale`` 2 tracks on the
     images reduced by two (area averaging; ``window`` and ``sigma`` are
-    full-resolution px): about a third of the time, positions returned in full-resolution px.
+    full-resolution px): a quarter of the pixels to track on, positions returned in full-resolution px.
     Reduced, a fractional offset can read up to 0.1 px high on smooth synthetic texture
     (0.01 px at full resolution); on MiddEval3 both score the same."""
     # The two views' reductions, then the corners beside the two normalisations, run side by side
-    # (OpenCV and numpy release the GIL; the same tracks either way): 1 ms less per MiddEval3-Q
-    # pair on two cores.
+    # (OpenCV and numpy release the GIL, so they overlap on two cores; the same tracks either way).
     if scale > 1:
         left_grey, right_grey = side_by_side(lambda: _reduced(left_grey, scale), lambda: _reduced(right_grey, scale))
         if left_valid is not None:

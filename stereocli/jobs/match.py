@@ -229,8 +229,7 @@ def check_confidence(config: dict) -> None:
 
 def _read_views(item: WorkItem, gray: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """The pair's left and right images, decoded side by side (OpenCV releases the GIL while it
-    decodes: 10 of a MiddEval3-Q pair's 20 ms of PNG decoding). A file's error is raised as
-    reading it alone would."""
+    decodes, so the two decodes overlap). A file's error is raised as reading it alone would."""
     from ..io.images import read_image
     from ..match.kernels import side_by_side
 

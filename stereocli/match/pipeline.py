@@ -271,8 +271,8 @@ def _reads_colour(calls: list, side: str) -> bool:
 def _working_image(image: np.ndarray, grey: bool) -> np.ndarray:
     """An input view as the stages see it: float32 in [0, 255], or with ``grey`` its (H, W) luma
     (what ``state.gray`` would give), taken straight from 8-bit colours without their float
-    copy. Grey views make preprocessing move one channel instead of three (row_align: 1.3 ms
-    instead of 3 on a Q pair) and save the copy (0.7 ms per Q pair)."""
+    copy. Grey views make preprocessing (``row_align``'s resampling) move one channel instead of
+    three, and save the copy."""
     from ..io.images import to_float_image
 
     image = np.ascontiguousarray(image)

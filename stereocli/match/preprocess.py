@@ -33,7 +33,8 @@ def _apply(state: MatchState, func) -> None:
 
 def _centred(response: np.ndarray) -> np.ndarray:
     # Signed band-pass responses are offset to mid-grey so the [0, 255] convention holds.
-    # In place in float32: ~10x faster than clip(response + 128.0).astype on numpy 2.x.
+    # In place in float32: no float64 temporaries and no extra copy, as clip(response + 128.0).astype
+    # would make.
     out = np.add(response, np.float32(128), dtype=np.float32)
     np.clip(out, np.float32(0), np.float32(255), out=out)
     return out
@@ -293,15 +294,18 @@ def column_pattern(state: MatchState, p: ColumnPatternParams) -> None:
     and ``min_significance`` standard errors, subtracts it from every channel (each measured on
     its own). Views without the pattern are left untouched. The amplitudes go into the match
     record (``stage_notes``).
+
+    No bundled preset runs it: its gain rests on one scene (Tsukuba, whose camera has the
+    pattern), and none of the validation scenes has the pattern, so it shows no gain there. Put
+    it first in ``preprocess`` for a camera that has one.
     """
     note = {}
     for which in ("left", "right"):
         valid = state.left_valid if which == "left" else state.right_valid
         image = state.left if which == "left" else state.right
-        # The grey of every eighth row tells a pattern apart from none for a fraction of a
-        # millisecond (Tsukuba's views: 0.66 and 0.68 grey levels, 5.1 and 6.5 standard errors;
-        # every other benchmark view at most 0.07 and 0.5); views that have one are then
-        # measured on every other row, per channel.
+        # The grey of every eighth row tells a pattern apart from none (Tsukuba's views: 0.66 and
+        # 0.68 grey levels, 5.1 and 6.5 standard errors; every other benchmark view at most 0.11
+        # and 0.5); views that have one are then measured on every other row, per channel.
         rows = np.ascontiguousarray(image[::_DETECTION_ROW_STEP])
         found = measure_column_pattern(rows if rows.ndim == 2 else luma(rows), window=p.window, clip=p.clip,
                                        valid=None if valid is None else valid[::_DETECTION_ROW_STEP])
@@ -332,7 +336,7 @@ class RowAlignParams:
     max_offset: float = param(8.0, "largest correction: a larger fitted offset leaves the pair as it is (rectify it instead)", unit="px", low=0.0, high=50.0)
     max_spread: float = param(0.5, "the tracks' robust standard deviation about the plane above which the pair is left as it is (its rows are off in a way a plane does not describe: rectify it)", unit="px", low=0.0, high=50.0)
     min_offset: float = param(0.1, "smallest correction: a pair whose fitted offset stays below this everywhere is left as it is (the fit's own error on aligned pairs reaches 0.06 px, and resampling blurs a little)", unit="px", low=0.0, high=50.0)
-    reduce: int = param(2, "track on the images reduced by this factor (1: full resolution, about three times the time, same MiddEval3 scores)", choices=(1, 2, 4))
+    reduce: int = param(2, "track on the images reduced by this factor (1: full resolution, four times the pixels, same MiddEval3 scores)", choices=(1, 2, 4))
     min_pixels: int = param(0, "fewest pixels of the reduced images: smaller pairs track at half the factor, or at full resolution (a small image reduced 4x leaves too few corners)", low=0, high=10**9)
     measure: bool = param(True, "track corners and fit the plane; false: apply offset, tilt_x and tilt_y as given (a rig's known rows, e.g. from an earlier pair's params.json), without tracking")
     offset: float = param(0.0, "with measure: false, how far below its left-view row a point appears in the right view at the image centre", unit="px", low=-50.0, high=50.0)

@@ -61,7 +61,7 @@ def local_consistency(state: MatchState, p: LocalConsistencyParams) -> None:
     (misplaced edges), so sub-pixel values on slanted surfaces are kept. ``separable`` votes
     along rows, then along columns of the result: O(radius) per pixel instead of O(radius²),
     and with ``min_change`` only at pixels within ``band`` px (along the line) of a step of at
-    least ``min_change`` bins (the ``accurate`` preset). Sets ``confidence`` to the winner's
+    least ``min_change`` bins (as the ``quality`` preset does). Sets ``confidence`` to the winner's
     share of the votes (1 where no vote was taken; with separable, the product of the two
     passes' shares), or multiplies an existing map (e.g. the ``confidence`` stage's) by it.
     """
@@ -185,7 +185,7 @@ def _discontinuity_windows(disp: np.ndarray, radius: int, min_spread: float, fil
 @dataclass(frozen=True)
 class PlaneFitParams:
     method: str = param("ransac", "plane estimator per segment", choices=("ransac", "histogram"))
-    segmentation: str = param("bilateral", "edge-preserving smoothing before the colour segments are grown: an OpenCV bilateral filter (about 30 ms for 0.35 MP) or mean-shift filtering (cv2.pyrMeanShiftFiltering, about 300 ms; same scores on MiddEval3)", choices=("bilateral", "mean_shift"))
+    segmentation: str = param("bilateral", "edge-preserving smoothing before the colour segments are grown: an OpenCV bilateral filter or mean-shift filtering (cv2.pyrMeanShiftFiltering, an iterative filter, slower; same scores on MiddEval3)", choices=("bilateral", "mean_shift"))
     spatial_radius: int = param(5, "smoothing window radius: mean-shift sp; bilateral: a (2·r − 1)-px filter with σ_space = r", unit="px", low=1, high=100)
     colour_radius: float = param(6.0, "colour window radius: mean-shift sr; bilateral: σ_colour = 2·r", unit="grey levels", low=1.0, high=255.0)
     tolerance: float = param(2.0, "neighbours whose filtered colours differ by at most this join a segment", unit="grey levels", low=0.0, high=255.0)
@@ -256,10 +256,8 @@ def plane_fit(state: MatchState, p: PlaneFitParams) -> None:
     every pixel (only safe when segments never straddle two surfaces). Assumes segments are
     planar surfaces: great on piecewise-planar scenes, can flatten curved or thin structures
     that share a colour segment (the reason ``replace`` defaults to invalid pixels only). The
-    ``accurate`` and ``quality`` presets place it after ``lr_check``, before ``fill``: the
-    rejected pixels inside a surface get its plane instead of the scanline fill's background
-    value (MiddEval3-Q bad 2.0 of the default 18.31; with this stage and its default parameters
-    17.88, with the presets' 17.64).
+    ``quality`` preset places it after ``lr_check``, before ``fill``: the rejected pixels inside
+    a surface get its plane instead of the scanline fill's background value.
     """
     disp = np.ascontiguousarray(state.disparity, dtype=np.float32)
     labels = segment_image(state.left, p.spatial_radius, p.colour_radius, p.tolerance, p.min_size, p.segmentation)

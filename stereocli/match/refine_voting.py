@@ -34,7 +34,7 @@ class RegionVotingParams:
     min_votes: int = param(20, "τS: least number of reliable pixels in the support region", low=1, high=100000)
     min_share: float = param(0.4, "τH: least share of the votes in the winning 1-px bin", low=0.0, high=1.0)
     iterations: int = param(5, "voting passes (outliers filled in one pass vote in the next)", low=1, high=50)
-    color: bool = param(True, "build the support arms on the colour image (max difference over channels, as Mei et al.); false: on the grey image (about 2x faster arms)")
+    color: bool = param(True, "build the support arms on the colour image (max difference over channels, as Mei et al.); false: on the grey image (one channel to compare instead of three)")
     stride: int = param(1, "sample the support every stride-th row and pixel (about stride² fewer votes; min_votes stays a full-region count)", low=1, high=8)
 
     def __post_init__(self):

@@ -1,8 +1,8 @@
 """Compile a matching config's kernels before its first real pair, on several cores at once.
 
 Numba compiles each kernel the first time it runs and caches the machine code on disk (beside
-the installed package, or in ``NUMBA_CACHE_DIR``); every later process loads it in
-milliseconds. Compiling takes seconds per kernel on one core, so a first run is worth
+the installed package, or in ``NUMBA_CACHE_DIR``); every later process loads it from there.
+Compiling costs far more than loading, kernel by kernel on one core, so a first run is worth
 spreading over the cores: ``stereocli warmup`` does it ahead (Docker images, CI caches), and
 the command line does it when the first kernel of a run turns out not to be cached.
 
@@ -23,8 +23,7 @@ separate processes and share the disk cache:
   search of small problems, whose kernels are also the coarse level's.
 
 Compiling the coarse and the fine level in two processes instead of one after the other
-shortens the longest process: on two cores the default preset's warm-up takes about 12 s
-instead of 14 s.
+shortens the longest process.
 """
 
 from __future__ import annotations
@@ -47,8 +46,7 @@ TASKS = {"volume_large": 9.5, "maps_2": 6.0, "volume_small": 5.6, "maps_1": 2.4}
 #: The folder that holds this ``stereocli`` package, the warm-up processes' working directory:
 #: ``python -m`` puts the working directory first on the module path, so a worker started from
 #: a checkout would import the checkout's sources rather than the installed package, compile
-#: their kernels into a cache of their own, and leave the run to compile its kernels again
-#: (the default preset's first run without the ahead-of-time build: 28.7 s instead of 11.4 s).
+#: their kernels into a cache of their own, and leave the run to compile its kernels again.
 PACKAGE_ROOT = Path(__file__).resolve().parents[2]
 #: (width, height, ndisp) of each task's synthetic pair.
 SIZES = {"volume_large": (448, 320, 96), "maps_1": (128, 96, 16), "maps_2": (128, 96, 16),

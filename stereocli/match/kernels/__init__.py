@@ -92,7 +92,7 @@ def _run(kernel, calls: list[tuple]) -> None:
     pool = _helper_pool(threads)
     # Every thread takes the next call from a shared counter (next() is atomic) until none is
     # left. The caller waits for the calls taken, not for the helpers: a small kernel's calls
-    # may all be done before a helper wakes up (tens of microseconds), which then finds none.
+    # may all be done before a helper wakes up, which then finds none.
     n = len(calls)
     taken = itertools.count()
     lock = threading.Lock()

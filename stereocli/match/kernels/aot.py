@@ -1,6 +1,6 @@
 """The chunk kernels of the usual presets compiled ahead of time (``numba.pycc``), so that a process
 that matches with them loads machine code like any extension module instead of starting numba's
-JIT runtime and loading each kernel from its cache (about 0.4 s of every ``stereocli`` process),
+JIT runtime and loading each kernel from its cache (a cost every ``stereocli`` process would pay),
 and a first run after installing compiles nothing on that path.
 
 ``pip install .`` builds them into the installed package (``setup.py``; a failure there only
@@ -351,7 +351,7 @@ def _build_module(job: tuple[str, str, dict[str, list[tuple[str, ...]]], str]) -
 
     class SharedRuntimeCC(CC):
         """Compiles ``modulemixin.c`` (the module's own entry point) for each module, and the
-        rest of numba's C runtime (the same for every module: 1.2 s) once per process."""
+        rest of numba's C runtime (the same for every module) once per process."""
 
         def _compile_mixins(self, build_dir):
             sources = [os.path.normpath(source) for source in self._get_mixin_sources()]

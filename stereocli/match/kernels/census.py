@@ -15,11 +15,11 @@ from . import chunk_kernel, for_rows, intrinsic, njit
 def _census_rows(image: np.ndarray, half_h: int, half_w: int, out, y0: int, y1: int) -> None:
     """:func:`census_transform` of rows ``[y0, y1)``, written into ``out``."""
     # The innermost loop runs along x over row slices with the window offset fixed, which LLVM
-    # vectorises (about 10x faster than building each pixel's string in turn); the ``half_w``
+    # vectorises (building each pixel's string in turn does not); the ``half_w``
     # columns at each side, whose neighbours are clamped to the border, take a scalar loop
     # (no padded copy of the image). The bits collect in two uint32 halves, the last 32
     # neighbours in ``low`` and any before them in ``high``: lanes as wide as the float32
-    # comparisons (a quarter faster than uint64 lanes).
+    # comparisons, so a vector holds as many of them (twice as many as uint64 lanes).
     h, w = image.shape
     n_bits = (2 * half_h + 1) * (2 * half_w + 1) - 1
     x0 = min(half_w, w)  # interior columns [x0, x1): every neighbour inside the row
@@ -67,7 +67,7 @@ def census_transform(image: np.ndarray, half_h: int, half_w: int) -> np.ndarray:
 def _popcount64(typingctx, value):
     """The number of set bits of a uint64, as LLVM's ``ctpop``: one instruction, vectorised
     where the CPU has one. (A SWAR form was recognised as the same instruction in a single
-    count, but not in the three of :func:`_weighted_distance`, which then ran 2.5x slower.)"""
+    count, but not in the three of :func:`_weighted_distance`.)"""
     from llvmlite import ir
     from numba import types
 
@@ -221,8 +221,8 @@ def _hamming_rows(census_left, census_right, min_disp: int, cost_max: float, out
             k1 = min(nd - 1, x - min_disp)
             base = w - 1 - x + min_disp
             if k0 == 0 and k1 == nd - 1:
-                # Every hypothesis inside (most pixels): one loop over the whole range. (Loops
-                # over sub-slices with run-time bounds ran 2-5x slower.)
+                # Every hypothesis inside (most pixels): one loop over the whole range, whose
+                # bounds LLVM knows (loops over sub-slices with run-time bounds vectorise worse).
                 src = reversed_right[base:base + nd]
                 for k in range(nd):
                     o[k] = _popcount64(cl ^ src[k])
@@ -236,7 +236,7 @@ def _weighted_rows(census_left, census_right, planes, scale, min_disp: int, cost
                    y1: int) -> None:
     """:func:`hamming_volume` with bit weights, of rows ``[y0, y1)``, written into ``out``."""
     # A kernel of its own: with both kinds of distance in one kernel the plain runs' loop
-    # no longer vectorised (about 3x slower).
+    # no longer vectorised.
     w = census_left.shape[1]
     nd = out.shape[2]
     top = out.dtype.type(cost_max)

@@ -3,7 +3,7 @@ the package), and the options of a chunk kernel.
 
 The kernel modules take ``njit``, ``prange`` and ``intrinsic`` from here rather than from numba:
 they are numba's, made lazy (:class:`LazyKernel`), so that importing the kernels does not import
-numba (0.2 s of every process). numba starts when a kernel first has to run from its JIT;
+numba, which every process would otherwise pay for. numba starts when a kernel first has to run from its JIT;
 kernels compiled ahead of time (:mod:`.aot`) run without it.
 """
 
@@ -26,8 +26,7 @@ def prange_only() -> dict:
 
     With ``parallel=True`` numba also turns every array allocation or expression in the kernel
     (``np.full``, ``np.zeros``, copies, sums) into a parallel loop of its own: each one is
-    compiled separately (about a quarter of a second of the first run each) and launched on the
-    threads for microseconds of work. (A fresh dict per call: numba consumes it.)
+    compiled separately (in the first run) and launched on the threads for a few elements' work. (A fresh dict per call: numba consumes it.)
     """
     return {"comprehension": False, "reduction": False, "inplace_binop": False, "setitem": False, "numpy": False,
             "stencil": False, "fusion": False, "prange": True}
@@ -168,13 +167,14 @@ def chunk_kernel(func):
 
     * by numba's parallel pipeline although it holds no ``prange``: its simplification passes
       drop the reference counting of the arrays that inlined helpers (``inline="always"``)
-      pass around (without them the geodesic vote's chunk ran 10x slower; numba's note that
-      nothing could be parallelised is expected and filtered);
+      pass around (the atomic increments and decrements they would otherwise do in the inner
+      loops dominate a chunk such as the geodesic vote's; numba's note that nothing could be
+      parallelised is expected and filtered);
     * with ``error_model="numpy"``: float division by zero gives inf or NaN rather than
       raising, so the division needs no test and its loop can be vectorised;
     * with ``noalias``: the kernel's array arguments never overlap (each output is allocated
       by its wrapper), so LLVM may vectorise loops that read one and write another (the LR
-      check ran 6x slower without). numba accepts the flag from ``prange`` lowering only; the
+      check's, for one). numba accepts the flag from ``prange`` lowering only; the
       decorator option is added to its CPU target options here, and left out if that fails.
     """
     return njit(cache=True, nogil=True, error_model="numpy", parallel=prange_only(), noalias=True)(func)

@@ -19,8 +19,8 @@ smallest ``k``. With 8-bit inputs every sum is an integer below 2**24, so the fl
 arithmetic is exact (the same numbers integer arithmetic would give). That is why there is no
 separate integer kernel: one float32 path is exact on 8-bit images *and* bit-identical to the
 volume path on fractional ones (after mean removal, LoG, ...), and float32 vectors have as
-many lanes as int32 ones; only int16 sums would be wider, at the price of a second kernel.
-On Teddy (450×375, D = 64, 9×9, 2 threads) this kernel already runs at StereoBM's speed.
+many lanes as int32 ones; only int16 sums would be wider, at the price of a second kernel
+(``benchmarks/speed_local.py`` compares it with StereoBM).
 
 Outputs: the WTA disparity (float32, +inf where the best cost is ``cost_max``) and
 ``(H, W, 3)`` float32 "winner costs", the volume entries at ``k − 1, k, k + 1`` around the

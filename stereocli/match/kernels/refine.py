@@ -471,7 +471,7 @@ def _line_fit_pass_rows(disp, image, radius: int, step: int, vertical: bool, sig
             n = x1 - x0
             # Row slices aligned so that element i is pixel x0 + i and its neighbour: loops over
             # range(n) index with non-negative ints, so numba drops its negative-index
-            # wrap-around and LLVM vectorises them (6x faster than indexing with x + dx).
+            # wrap-around and LLVM vectorises them (indexing with x + dx does not).
             centre_d = d0[x0:x1]
             other_d = nb[x0 + dx:x1 + dx]
             centre_g = image[0, y, x0:x1]

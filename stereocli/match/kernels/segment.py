@@ -315,7 +315,7 @@ def _pixels_by_segment_chunk(flat, starts, order, n_chunks: int, chunk: int) -> 
 
 def pixels_by_segment(labels: np.ndarray):
     """The flat pixel indices grouped by segment, each segment's in increasing order (as a
-    stable argsort of the labels gives them, by a counting sort: a tenth of the time), and
+    stable argsort of the labels gives them, by a counting sort: O(n) instead of O(n log n)), and
     ``(order, starts, counts)``: segment s holds ``order[starts[s]:starts[s + 1]]``;
     ``labels`` (H, W) int32 0..n−1."""
     flat = np.ascontiguousarray(labels).ravel()
@@ -489,7 +489,7 @@ def _packed_quarter_levels_rows(image, out, y0: int, y1: int) -> None:
     for y in range(y0, y1):
         row = image[y]
         out_row = out[y]
-        if c == 3:  # written out, so that the loop over x vectorises (5x faster than the loop below)
+        if c == 3:  # written out, so that the loop over x vectorises (the loop below does not)
             for x in range(w):
                 out_row[x] = (_quarter_level(row[x, 0]) | (_quarter_level(row[x, 1]) << CHANNEL_BITS)
                               | (_quarter_level(row[x, 2]) << (2 * CHANNEL_BITS)))
@@ -633,7 +633,7 @@ def _local_consistency_line_chunk(disp, bins, centres, left_packed, right_packed
     h, w = bins.shape
     n_centres = centres.shape[0]
     # Mass and weighted disparity sum of bin k side by side (hist[2k], hist[2k + 1]): one
-    # cache line per bin, and a little faster than two arrays.
+    # cache line per bin rather than one in each of two arrays.
     hist = np.zeros(2 * ndisp, np.float32)
     for i in range(chunk * n_centres // n_chunks, (chunk + 1) * n_centres // n_chunks):
         y = centres[i] // w

@@ -51,8 +51,7 @@ INT16_MAX = 32767
 #: Spare elements at the end of each thread's row buffers (at least 64 bytes), so the two
 #: threads' buffers never share a cache line. Without them the horizontal buffers of the two
 #: passes (a few dozen bytes each, written at every pixel) shared lines, which then travelled
-#: between the cores at every step, making the kernel 10-15 % slower on two threads (far
-#: slower where the cores sit further apart).
+#: between the cores at every step (false sharing; the further apart the cores, the dearer).
 GAP = 32
 
 # Directions (dy, dx) of the downward pass: the predecessor of (y, x) is (y - dy, x - dx).
@@ -70,7 +69,7 @@ def borrowed(typingctx, arr):
     """``arr`` without its reference count (a null meminfo), for a :func:`~.chunk_kernel` to
     pass on: the views its callees make of it in their inner loops (a pixel's path costs, a
     row) then do no atomic increments and decrements, as in the body of a ``prange`` loop,
-    whose arrays have none either. (With them the SGM passes took 1.3-1.5x as long.) The
+    whose arrays have none either. The
     caller keeps ``arr`` alive for as long as the result is used."""
     from numba import types
     from numba.core import cgutils
@@ -194,7 +193,7 @@ def _horizontal_row(cf, mul, guide, y: int, forward: bool, add: bool, p1: int, p
     the second). ``hf`` holds two buffers of
     ``hrow`` int16 used in turn; the penalties go to ``pens``. (The row's paths are small
     functions of their own rather than loops inside :func:`_pass_rows`: there LLVM kept their
-    state on the stack, and the kernel took 1.5× as long on Tsukuba's D = 16.)"""
+    state on the stack rather than in registers.)"""
     s = 1 if forward else -1
     for j in range(1, w):
         x = j if forward else w - 1 - j
@@ -232,7 +231,7 @@ def _direction_row(cf, mul, lf, tf, mins, pens, k: int, ring: int, ip: int, pr: 
         if ip < 0 or xp < 0 or xp >= w:
             mins[k, ring, x] = _start(cf, pix, und, mul, lf, cur, tf, pix, True)
         else:
-            # :func:`_step` written out: through the inlined call this loop ran 25-30 % slower.
+            # :func:`_step` written out: the inlined call compiled to a slower loop than this.
             pm = mins[k, pr, xp]
             jump = np.int16(pm + pens[k + 1, x])
             po = prev_row + np.uint64(xp) * lrow

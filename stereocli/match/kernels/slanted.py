@@ -47,8 +47,8 @@ def _census_codes_rows(image, half_h: int, half_w: int, step: int, out, y0: int,
                 inner_hi = max(min(w - off, w), inner_lo)
                 mask = np.uint64(1) << bit
                 _census_clamped(row, centre, code, off, mask, 0, inner_lo)
-                # 1-D slices and an all-ones/zero mask: LLVM vectorises this form (20x faster
-                # than a shifted comparison result or a branch).
+                # 1-D slices and an all-ones/zero mask: LLVM vectorises this form (not a shifted
+                # comparison result or a branch).
                 shifted = row[inner_lo + off:inner_hi + off]
                 centres = centre[inner_lo:inner_hi]
                 codes = code[inner_lo:inner_hi]

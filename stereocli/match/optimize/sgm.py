@@ -82,9 +82,8 @@ def quantization(cost_max: float, paths: int, p1: float, p2: float, levels: int)
 
 #: The coarse level searches a range of a multiple of this many hypotheses (extended beyond
 #: the far end). The full-range kernel's vector loops then run whole: an odd tail runs scalar
-#: (at D/2 = 31, Shelves' coarse level, the tail of 15 took as long as the 16 vector lanes).
-#: The windows clip the extra hypotheses away. MiddEval3: 3-7 % faster per pair, scores within
-#: ±0.06 per scene.
+#: (at D/2 = 31, Shelves' coarse level, a tail of 15 beside 16 vector lanes). The windows clip
+#: the extra hypotheses away; MiddEval3 scores move by at most 0.06 per scene.
 COARSE_RANGE_STEP = 8
 
 
