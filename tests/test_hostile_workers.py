@@ -281,19 +281,21 @@ def test_a_retry_avoids_the_worker_that_failed_the_item(tmp_path, scenes, schedu
 
 
 def _other_stereocli(root: Path, change: str) -> Path:
-    """A copy of the package with another version number, or one kernel source changed."""
+    """A copy of the package with another version number, or one kernel source or one other
+    source changed (the version the same)."""
     shutil.copytree(REPO / "stereocli", root / "stereocli", ignore=shutil.ignore_patterns("__pycache__", "_aot"))
     if change == "version":
         init = root / "stereocli" / "__init__.py"
         init.write_text(re.sub(r'__version__ = "[^"]*"', '__version__ = "0.0.0+other"', init.read_text()))
     else:
-        with open(root / "stereocli" / "match" / "kernels" / "census.py", "a") as kernel:
-            kernel.write("\n# changed\n")
+        changed = {"kernels": "match/kernels/census.py", "sources": "match/pipeline.py"}[change]
+        with open(root / "stereocli" / changed, "a") as source:
+            source.write("\n# changed\n")
     return root
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("change", ["version", "kernels"])
+@pytest.mark.parametrize("change", ["version", "kernels", "sources"])
 def test_a_worker_with_another_stereocli_is_refused(run_cli, tmp_path, scenes, scheduler, start_worker, change):
     from stereocli import __version__
     from stereocli.match.kernels.aot import kernel_sources_hash
@@ -304,16 +306,16 @@ def test_a_worker_with_another_stereocli_is_refused(run_cli, tmp_path, scenes, s
     r = run_cli("match", scenes, "-o", out, "-c", "fast", "--scheduler", scheduler)
     version = "0.0.0+other" if change == "version" else __version__
     ours = kernel_sources_hash()
-    message = re.compile(rf"worker {address} runs stereocli {re.escape(version)} \(kernels (\w+)\), this client "
-                         rf"stereocli {__version__} \(kernels {ours}\); refused: install the same stereocli on "
-                         "every worker")
+    message = re.compile(rf"worker {address} runs stereocli {re.escape(version)} \(kernels (\w+), sources (\w+)\), "
+                         rf"this client stereocli {__version__} \(kernels {ours}, sources (\w+)\); refused: "
+                         "install the same stereocli on every worker")
     assert r.code == 2, r.err
     errors = [line for line in r.err.splitlines() if line.startswith("Error:")]
     assert len(errors) == N
     for i, line in enumerate(errors):
         found = message.fullmatch(line.removeprefix(f"Error: s{i}: "))
         assert found, line
-        assert (found[1] == ours) == (change == "version")
+        assert (found[1] == ours) == (change != "kernels") and found[2] != found[3]
     record = json.loads((out / "run.json").read_text())
     assert all(i["attempts"] == 0 for i in record["items"])
     assert_clean(out)

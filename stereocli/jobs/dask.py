@@ -18,9 +18,9 @@ in input order. Two kinds of retry:
   again, up to ``retries`` more times, avoiding the workers that failed it before where the
   cluster has others.
 
-Each task first checks that its worker runs the client's stereocli (version and kernel sources):
-a worker that does not is refused and its items run on the others. An item a worker reports
-done counts only once the client sees its completion marker and outputs.
+Each task first checks that its worker runs the client's stereocli (its version, kernel sources
+and other sources): a worker that does not is refused and its items run on the others. An item
+a worker reports done counts only once the client sees its completion marker and outputs.
 
 Failures of the cluster itself are bounded: an address is probed (is a Dask scheduler
 answering?) within :data:`CONNECT_SECONDS`; a scheduler lost mid-batch (the client cannot reach
@@ -208,32 +208,45 @@ def _missing_path(item: WorkItem) -> str | None:
 
 
 def _identity_probe() -> Callable[[], dict[str, str]]:
-    """A function returning the stereocli version and the kernel sources' digest of the process
-    that calls it. It is made here, inside a function, so that Dask sends its code along
-    (cloudpickle pickles nested functions by value): a worker running another stereocli runs this
-    code, not that version's own."""
+    """A function returning what identifies the stereocli of the process that calls it: its
+    version, the digest of its kernel sources and that of all its Python sources. It is made
+    here, inside a function, so that Dask sends its code along (cloudpickle pickles nested
+    functions by value): a worker running another stereocli runs this code, not that version's
+    own. The digests are computed once per probe (a worker keeps the probe it unpickled)."""
+    known: dict[str, str] = {}
 
     def identity() -> dict[str, str]:
+        if known:
+            return dict(known)
+        import hashlib
+        from pathlib import Path
+
         try:
             import stereocli
 
             version = str(stereocli.__version__)
+            root = Path(stereocli.__file__).parent
+            digest = hashlib.sha256()
+            for path in sorted(root.rglob("*.py")):
+                digest.update(path.relative_to(root).as_posix().encode() + b"\0" + path.read_bytes())
+            sources = digest.hexdigest()[:16]
         except Exception:  # noqa: BLE001 - a worker without a usable stereocli
-            version = "unknown"
+            version = sources = "unknown"
         try:
             from stereocli.match.kernels.aot import kernel_sources_hash
 
             kernels = kernel_sources_hash()
         except Exception:  # noqa: BLE001
             kernels = "unknown"
-        return {"stereocli": version, "kernels": kernels}
+        known.update(stereocli=version, kernels=kernels, sources=sources)
+        return dict(known)
 
     return identity
 
 
 def _checked(fn: Callable, expected: dict[str, str]) -> Callable:
     """``fn`` as a task that first checks its worker runs the stereocli ``expected`` (version and
-    kernels, see :func:`_identity_probe`); a worker that does not returns ``(REFUSED, address,
+    sources, see :func:`_identity_probe`); a worker that does not returns ``(REFUSED, address,
     its identity)`` without running anything. Sent by value, like the probe."""
     identity = _identity_probe()
 
@@ -257,9 +270,13 @@ def _refusal(value) -> tuple[str, dict] | None:
 
 
 def refusal_message(address: str, theirs: dict[str, str], ours: dict[str, str]) -> str:
-    """Why worker ``address`` was refused: both stereocli versions and kernel digests."""
-    return (f"worker {address} runs stereocli {theirs.get('stereocli')} (kernels {theirs.get('kernels')}), this "
-            f"client stereocli {ours['stereocli']} (kernels {ours['kernels']}); refused: install the same "
+    """Why worker ``address`` was refused: both stereocli versions and source digests."""
+
+    def describe(identity: dict[str, str]) -> str:
+        return (f"stereocli {identity.get('stereocli')} (kernels {identity.get('kernels')}, "
+                f"sources {identity.get('sources')})")
+
+    return (f"worker {address} runs {describe(theirs)}, this client {describe(ours)}; refused: install the same "
             "stereocli on every worker")
 
 
