@@ -111,6 +111,7 @@ def test_a_pool_worker_killed_from_outside_costs_at_most_its_item(tmp_path):
         deadline = time.monotonic() + 120
         while time.monotonic() < deadline and proc.poll() is None and not list(out.glob("*/.stereocli-match.done")):
             time.sleep(0.01)
+        assert proc.poll() is None, "the batch should still be running"
         workers = [p for p in psutil.Process(proc.pid).children() if "spawn_main" in " ".join(p.cmdline())]
         assert workers, "the pool should be running"
         workers[0].kill()
