@@ -15,7 +15,12 @@ in input order. Two kinds of retry:
   ``distributed.scheduler.allowed-failures`` deaths) and the runner removes the dead attempt's
   temporary files before writing (:func:`stereocli.jobs.items.run_one`);
 * an item that *fails* (the item function raised, or the scheduler gave up on it) is submitted
-  again, up to ``retries`` more times.
+  again, up to ``retries`` more times, avoiding the workers that failed it before where the
+  cluster has others.
+
+Each task first checks that its worker runs the client's stereocli (its version, kernel sources
+and other sources): a worker that does not is refused and its items run on the others. An item
+a worker reports done counts only once the client sees its completion marker and outputs.
 
 Failures of the cluster itself are bounded: an address is probed (is a Dask scheduler
 answering?) within :data:`CONNECT_SECONDS`; a scheduler lost mid-batch (the client cannot reach
@@ -31,6 +36,7 @@ lazily and turns its absence into a :class:`~stereocli.errors.ConfigError`.
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import contextlib
 import logging
 import os
@@ -40,14 +46,21 @@ import time
 from pathlib import Path
 from typing import Any, Callable, Iterator, Sequence
 
-from ..errors import ConfigError
-from .items import ItemResult, WorkItem, prepare_worker, run_one
+from ..errors import EXIT_USAGE, ConfigError
+from .items import ItemResult, WorkItem, finished_in_run, prepare_worker, run_one
 
 INSTALL_HINT = 'pip install "stereocli[dask]"'
 WORKER_WAIT_SECONDS = 60  # a remote scheduler with no workers would otherwise wait forever
 CONNECT_SECONDS = 10  # probing an address: a Dask scheduler answers at once
 LOST_SECONDS = 10  # a scheduler unreachable this long is lost: the unfinished items fail
 SHARED_FS_HINT = "Dask workers need a shared filesystem with the same paths"
+#: How long outputs a worker committed may take to appear to the client before the item fails
+#: (an NFS client may cache a folder's absence for its attribute-cache time, 30 s by default).
+VISIBLE_SECONDS = 30
+#: How often the client looks for items restricted to workers that have all left (seconds).
+REROUTE_SECONDS = 1.0
+#: First element of what a task returns when its worker runs another stereocli (it ran nothing).
+REFUSED = "stereocli-refused"
 _ADDRESS = re.compile(r"^(?:([a-z][a-z0-9+.-]*)://)?[^\s/:]+:\d+$")
 
 
@@ -194,6 +207,90 @@ def _missing_path(item: WorkItem) -> str | None:
     return None
 
 
+def _identity_probe() -> Callable[[], dict[str, str]]:
+    """A function returning what identifies the stereocli of the process that calls it: its
+    version, the digest of its kernel sources and that of all its Python sources. It is made
+    here, inside a function, so that Dask sends its code along (cloudpickle pickles nested
+    functions by value): a worker running another stereocli runs this code, not that version's
+    own. The digests are computed once per probe (a worker keeps the probe it unpickled)."""
+    known: dict[str, str] = {}
+
+    def identity() -> dict[str, str]:
+        if known:
+            return dict(known)
+        import hashlib
+        from pathlib import Path
+
+        try:
+            import stereocli
+
+            version = str(stereocli.__version__)
+            root = Path(stereocli.__file__).parent
+            digest = hashlib.sha256()
+            for path in sorted(root.rglob("*.py")):
+                digest.update(path.relative_to(root).as_posix().encode() + b"\0" + path.read_bytes())
+            sources = digest.hexdigest()[:16]
+        except Exception:  # noqa: BLE001 - a worker without a usable stereocli
+            version = sources = "unknown"
+        try:
+            from stereocli.match.kernels.aot import kernel_sources_hash
+
+            kernels = kernel_sources_hash()
+        except Exception:  # noqa: BLE001
+            kernels = "unknown"
+        known.update(stereocli=version, kernels=kernels, sources=sources)
+        return dict(known)
+
+    return identity
+
+
+def _checked(fn: Callable, expected: dict[str, str]) -> Callable:
+    """``fn`` as a task that first checks its worker runs the stereocli ``expected`` (version and
+    sources, see :func:`_identity_probe`); a worker that does not returns ``(REFUSED, address,
+    its identity)`` without running anything. Sent by value, like the probe."""
+    identity = _identity_probe()
+
+    def checked(*args):
+        mine = identity()
+        if mine != expected:
+            from distributed import get_worker
+
+            return (REFUSED, get_worker().address, mine)
+        return fn(*args)
+
+    checked.__name__ = fn.__name__  # Dask names the task's key after it (the qualname keeps it sent by value)
+    return checked
+
+
+def _refusal(value) -> tuple[str, dict] | None:
+    """``(worker address, its identity)`` when ``value`` is a :func:`_checked` task's refusal."""
+    if isinstance(value, tuple) and len(value) == 3 and value[0] == REFUSED:
+        return value[1], value[2]
+    return None
+
+
+def refusal_message(address: str, theirs: dict[str, str], ours: dict[str, str]) -> str:
+    """Why worker ``address`` was refused: both stereocli versions and source digests."""
+
+    def describe(identity: dict[str, str]) -> str:
+        return (f"stereocli {identity.get('stereocli')} (kernels {identity.get('kernels')}, "
+                f"sources {identity.get('sources')})")
+
+    return (f"worker {address} runs {describe(theirs)}, this client {describe(ours)}; refused: install the same "
+            "stereocli on every worker")
+
+
+def _unseen_output(item: WorkItem) -> str | None:
+    """The first of ``item``'s committed paths (completion marker, outputs) this process does not
+    see as this run wrote it; None when it sees them all."""
+    if not item.outputs or finished_in_run(item):
+        return None
+    for path in ([str(item.marker)] if item.marker is not None else []) + list(item.outputs.values()):
+        if not os.path.exists(path):
+            return path
+    return str(item.marker) if item.marker is not None else None  # another run's marker
+
+
 def _run_on_worker(item_fn: Callable, item: WorkItem, verbose_errors: bool) -> ItemResult:
     """Task body: check the paths are visible here, run one item with the batch's error
     handling; note which worker ran it."""
@@ -236,7 +333,16 @@ def run_dask(items: Sequence[WorkItem], item_fn: Callable, verbose_errors: bool,
 
 
 class _DaskBatch:
-    """The items of one :func:`run_dask` call on a connected client: submissions, outcomes."""
+    """The items of one :func:`run_dask` call on a connected client: submissions, outcomes.
+
+    Each task checks that its worker runs this client's stereocli (:func:`_checked`); a worker
+    that does not is refused: its item goes to the other workers without counting an attempt,
+    and the item fails only when no other worker is left. A retry avoids the workers that
+    failed that item before while the cluster has others (if those all leave, the item is
+    submitted again to the workers there are then: :meth:`reroute`). An item a worker reports
+    done is ok only once this client sees its committed outputs (:data:`VISIBLE_SECONDS` at
+    most); else it fails as a failure on that worker.
+    """
 
     def __init__(self, client, items: list[WorkItem], item_fn: Callable, verbose_errors: bool, retries: int,
                  record: Callable[[int, ItemResult, bool], None]) -> None:
@@ -244,22 +350,58 @@ class _DaskBatch:
 
         self.client, self.items, self.item_fn, self.verbose_errors = client, items, item_fn, verbose_errors
         self.retries, self.record = retries, record
+        self.identity = _identity_probe()()
+        self.task = _checked(_run_on_worker, self.identity)
         self.results: list[ItemResult | None] = [None] * len(items)
-        self.submitted = [0] * len(items)
+        self.submitted = [0] * len(items)  # submissions that ran (a refused one does not count)
+        self.tried: list[list[str]] = [[] for _ in items]  # the worker of each run
+        self.avoid: list[set[str]] = [set() for _ in items]  # workers that failed or refused each item
+        self.refused: dict[str, dict] = {}  # worker address -> the stereocli it runs
+        self.notes: list[list[str]] = [[] for _ in items]  # warnings for the item's record
+        self.unverified: dict[int, tuple[ItemResult, float]] = {}  # reported done, outputs not seen yet
         self.index: dict[Any, int] = {}  # key of each outstanding task -> item
+        self.restricted: dict[Any, tuple[Any, set[str]]] = {}  # key -> (future, the workers it may run on)
         self.pending = distributed.as_completed([self.submit(k) for k in range(len(items))], loop=client.loop)
 
-    def submit(self, k: int):
-        self.submitted[k] += 1
-        future = self.client.submit(_run_on_worker, self.item_fn, self.items[k], self.verbose_errors, pure=False)
+    def submit(self, k: int, counted: bool = True):
+        """Submit item ``k``, restricted to the workers that neither failed nor refused it when
+        the cluster has such workers (``counted``: a new attempt, not a re-routed one)."""
+        self.submitted[k] += counted
+        avoid = self.avoid[k] | set(self.refused)
+        others = [w for w in self._workers() if w not in avoid] if avoid else []
+        # A strict restriction: with a loose one an idle avoided worker would steal the task.
+        future = self.client.submit(self.task, self.item_fn, self.items[k], self.verbose_errors, pure=False,
+                                    workers=others or None)
         self.index[future.key] = k
+        if others:
+            self.restricted[future.key] = (future, set(others))
         return future
+
+    def reroute(self) -> None:
+        """Submit again, to the workers there are now, the items restricted to workers that have
+        all left (died or were removed): such a task would wait forever."""
+        current = set(self._workers())
+        for key, (future, allowed) in list(self.restricted.items()):
+            if current and not allowed & current:
+                del self.restricted[key]
+                k = self.index.pop(key)
+                self.client.cancel([future])
+                self.pending.add(self.submit(k, counted=False))
+
+    def _workers(self) -> list[str]:
+        """The addresses of the cluster's workers now ([] when the scheduler does not answer)."""
+        try:
+            return list(self.client.nthreads())
+        except Exception:  # noqa: BLE001 - a scheduler being lost: the run loop handles it
+            return []
 
     def run(self) -> None:
         """Take finished tasks until every item has its final result or the scheduler is lost
         (then the unfinished items fail)."""
         lost_since = None
-        while self.index:
+        next_reroute = time.monotonic() + REROUTE_SECONDS
+        while self.index or self.unverified:
+            self.check_visible()
             done = self.pending.next_batch(block=False)
             if done:
                 if not self.take(done):
@@ -267,11 +409,15 @@ class _DaskBatch:
                 continue
             if self.client.status == "running":
                 lost_since = None
-            else:
+                if self.restricted and time.monotonic() > next_reroute:
+                    self.reroute()
+                    next_reroute = time.monotonic() + REROUTE_SECONDS
+            elif self.index:
                 lost_since = lost_since or time.monotonic()
                 if self.client.status in ("closing", "closed") or time.monotonic() - lost_since > LOST_SECONDS:
                     break
             time.sleep(0.05)
+        self.check_visible(final=True)
         for k in sorted(set(self.index.values())):
             res = ItemResult.failure(self.items[k], "the Dask scheduler was lost before this item finished; "
                                                     "run again with --skip-existing to resume")
@@ -283,7 +429,10 @@ class _DaskBatch:
         """Record the outcomes of finished ``futures``, resubmitting failures that have retries
         left; False when they show that the scheduler is gone."""
         for future in futures:
-            k = self.index[future.key]
+            k = self.index.get(future.key)
+            if k is None:  # cancelled by reroute(), submitted again
+                future.release()
+                continue
             try:
                 res = future.result(timeout=LOST_SECONDS)
             except (Exception, asyncio.CancelledError) as exc:  # noqa: BLE001 - lost task fails its item only
@@ -292,16 +441,74 @@ class _DaskBatch:
                 detail = str(exc).splitlines()[0] if str(exc) else "no detail"
                 res = ItemResult.failure(self.items[k], f"lost on the cluster ({type(exc).__name__}: {detail})")
             del self.index[future.key]
+            self.restricted.pop(future.key, None)
             future.release()
+            refusal = _refusal(res)
+            if refusal is not None:
+                self.refuse(k, *refusal)
+                continue
             # Submissions, plus the runs Dask started again after a worker died (run_one counts
             # the staging folders those left).
             res.attempts = self.submitted[k] + max(0, res.attempts - 1)
-            retry = res.status == "failed" and self.submitted[k] <= self.retries and self.client.status == "running"
-            self.results[k] = res
-            self.record(k, res, not retry)
-            if retry:
-                self.pending.add(self.submit(k))
+            if res.details.get("worker"):
+                self.tried[k].append(res.details["worker"])
+            if res.status == "ok" and _unseen_output(self.items[k]) is not None:
+                self.unverified[k] = (res, time.monotonic() + VISIBLE_SECONDS)
+                continue
+            self.conclude(k, res)
         return True
+
+    def refuse(self, k: int, address: str, theirs: dict) -> None:
+        """Item ``k`` was refused by worker ``address`` (another stereocli): send it to the other
+        workers, or fail it when none is left (or that worker refused it before)."""
+        self.submitted[k] -= 1  # that submission ran nothing
+        message = refusal_message(address, theirs, self.identity)
+        first = address not in self.refused
+        self.refused[address] = theirs
+        again = address not in self.avoid[k]
+        self.avoid[k].add(address)
+        if again and self.client.status == "running" and set(self._workers()) - self.avoid[k] - set(self.refused):
+            if first:
+                self.notes[k].append(f"{message}; its items run on the other workers")
+            self.pending.add(self.submit(k))
+            return
+        res = ItemResult.failure(self.items[k], message, EXIT_USAGE)
+        res.details = {"worker": address}
+        res.attempts = self.submitted[k]
+        self.conclude(k, res, can_retry=False)
+
+    def check_visible(self, final: bool = False) -> None:
+        """Conclude the items reported done whose outputs this client now sees, and those whose
+        outputs are still not here after :data:`VISIBLE_SECONDS` (or ``final``ly): failed."""
+        for k, (res, deadline) in list(self.unverified.items()):
+            unseen = _unseen_output(self.items[k])
+            if unseen is not None and not final and time.monotonic() < deadline:
+                continue
+            del self.unverified[k]
+            if unseen is not None:
+                worker = res.details.get("worker", "?")
+                failed = ItemResult.failure(self.items[k], f"{unseen}: not visible to this client although worker "
+                                                           f"{worker} committed the item ({SHARED_FS_HINT}; is the "
+                                                           "output folder on the worker's own disk?)")
+                failed.details, failed.attempts, failed.seconds = {"worker": worker}, res.attempts, res.seconds
+                res = failed
+            self.conclude(k, res, can_retry=not final)
+
+    def conclude(self, k: int, res: ItemResult, can_retry: bool = True) -> None:
+        """Record item ``k``'s outcome ``res`` of its latest run, and submit it again when it
+        failed with retries left (avoiding the worker that ran it)."""
+        if len(self.tried[k]) > 1:
+            res.details = {**res.details, "workers": list(self.tried[k])}
+        if self.notes[k]:
+            res.details = {**res.details, "warnings": [*res.details.get("warnings", []), *self.notes[k]]}
+        if res.status == "failed" and res.details.get("worker"):
+            self.avoid[k].add(res.details["worker"])
+        retry = (can_retry and res.status == "failed" and self.submitted[k] <= self.retries
+                 and self.client.status == "running")
+        self.results[k] = res
+        self.record(k, res, not retry)
+        if retry:
+            self.pending.add(self.submit(k))
 
 
 # --- tasks inside a task ------------------------------------------------------------------
@@ -324,16 +531,68 @@ def worker_map(fn: Callable, args_list: Sequence[tuple], *, big_first_arg: bool 
     The calling task leaves the worker's thread pool while it waits (so even one-thread workers
     can run the sub-tasks, no deadlock). With ``big_first_arg`` the first argument of each call
     (e.g. an image strip) is scattered to the cluster instead of riding in the task graph.
-    Results come back in order. Outside a worker this is a plain loop.
+    Sub-tasks lost with a dead worker (with their scattered data) run again, up to Dask's
+    ``distributed.scheduler.allowed-failures`` times; a worker running another stereocli is
+    refused (:func:`_checked`) and the sub-tasks go to the others. Results come back in order;
+    a sub-task's own error is raised. Outside a worker this is a plain loop.
     """
     if not in_worker():
         return [fn(*args) for args in args_list]
+    import dask
+    import distributed
     from distributed import worker_client
 
+    args_list = [tuple(a) for a in args_list]
+    identity = _identity_probe()()
+    task = _checked(fn, identity)
+    results: list = [None] * len(args_list)
+    todo = list(range(len(args_list)))
+    refused: dict[str, dict] = {}
+    lost_rounds = 0
     with worker_client() as client:
-        args_list = [tuple(a) for a in args_list]
-        if big_first_arg and args_list:
-            data = client.scatter([a[0] for a in args_list], hash=False)
-            args_list = [(d, *a[1:]) for d, a in zip(data, args_list)]
-        futures = [client.submit(fn, *args, pure=False) for args in args_list]
-        return client.gather(futures)
+        while todo:
+            # This worker is never refused (it runs this code), so the restriction never empties.
+            where = {"workers": [w for w in client.nthreads() if w not in refused]} if refused else {}
+            calls = [args_list[k] for k in todo]
+            if big_first_arg:
+                data = client.scatter([a[0] for a in calls], hash=False, **where)
+                calls = [(d, *a[1:]) for d, a in zip(data, calls)]
+            futures = [client.submit(task, *a, pure=False, **where) for a in calls]
+            with contextlib.suppress(*_CANCELLED):  # raised once all are done, when some were lost: see below
+                distributed.wait(futures)
+            again, lost = [], 0
+            for k, future in zip(todo, futures):
+                if future.status != "finished" and _lost(future):
+                    again.append(k)
+                    lost += 1
+                    continue
+                value = future.result()  # raises the sub-task's own error
+                refusal = _refusal(value)
+                if refusal is None:
+                    results[k] = value
+                elif refusal[0] in refused:  # refused twice: the restriction did not hold
+                    raise RuntimeError(refusal_message(*refusal, identity))
+                else:
+                    refused[refusal[0]] = refusal[1]
+                    again.append(k)
+            lost_rounds += bool(lost)
+            if lost and lost_rounds > dask.config.get("distributed.scheduler.allowed-failures", 3):
+                raise RuntimeError(f"{lost} of {len(args_list)} sub-tasks were lost with their workers "
+                                   f"{lost_rounds} times")
+            todo = again
+    return results
+
+
+#: What a sub-task lost with its worker raises (Dask's FutureCancelledError is the first).
+_CANCELLED = (concurrent.futures.CancelledError, asyncio.CancelledError)
+
+
+def _lost(future) -> bool:
+    """True when a sub-task's ``future`` ended without running to its end because a worker died
+    (cancelled, or its scattered input lost with that worker), not by its own error."""
+    if future.status in ("cancelled", "lost"):
+        return True
+    try:
+        return isinstance(future.exception(), _CANCELLED)
+    except _CANCELLED:
+        return True

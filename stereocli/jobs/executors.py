@@ -9,13 +9,17 @@ staged outputs removed, and the finished items returned with the signal number.
 
 from __future__ import annotations
 
-import concurrent.futures as cf
+import collections
+import contextlib
 import multiprocessing
+import multiprocessing.connection as mp_connection
 import os
+import pickle
 import signal
 import sys
 import uuid
 from dataclasses import replace
+from multiprocessing.reduction import ForkingPickler
 from typing import Callable, Iterable
 
 from .items import (BatchResult, ItemResult, WorkItem, check_outputs, finished_in_run, is_done, prepare_worker,
@@ -195,39 +199,187 @@ def _process_pool(items: list[WorkItem], item_fn, jobs: int, verbose_errors: boo
                   done: Callable[[int, ItemResult], None]) -> None:
     """Run ``items`` in ``jobs`` spawned worker processes; ``done(k, result)`` as each finishes.
 
-    On an interrupt the workers are killed (their items' staged outputs are removed by the
-    caller) and the interrupt propagates.
+    Each worker has a pipe of its own and is handed its next item only when it is idle, so the
+    parent knows which item every worker runs: a worker that dies (killed, out of memory) fails
+    that item alone (ok when it had committed its outputs), a fresh worker takes its place and
+    the queue goes on. On an interrupt the workers are killed (their items' staged outputs are
+    removed by the caller) and the interrupt propagates.
     """
-    from ..process import interrupts_blocked
-
     threads = max(1, (os.cpu_count() or 1) // jobs)
     ctx = multiprocessing.get_context("spawn")  # fork is unsafe once numba threads exist
-    pool = cf.ProcessPoolExecutor(max_workers=jobs, mp_context=ctx, initializer=init_worker,
-                                  initargs=(threads, os.getpid()))
+    queue = collections.deque(range(len(items)))
+    workers: list[_PoolWorker] = []
+    failed_starts = 0  # workers in a row that died before they were ready
     try:
+        while queue or any(w.item is not None for w in workers):
+            busy = sum(w.item is not None for w in workers)
+            while len(workers) < min(jobs, busy + len(queue)):
+                workers.append(_PoolWorker(ctx, threads))
+            for worker in workers:
+                if worker.ready and worker.item is None and queue:
+                    k = queue.popleft()
+                    try:
+                        sent = worker.give(k, (item_fn, items[k], verbose_errors))
+                    except _Unsendable as exc:  # this item fails; the worker is fine
+                        done(k, ItemResult.failure(items[k], str(exc)))
+                        continue
+                    if not sent:  # the worker is dead (seen below): the item goes back in the queue
+                        queue.appendleft(k)
+            mp_connection.wait([w.conn for w in workers] + [w.process.sentinel for w in workers])
+            for worker in list(workers):
+                for k, res in worker.receive(items):
+                    done(k, res)
+                if worker.ready:
+                    failed_starts = 0
+                if worker.process.is_alive():
+                    continue
+                workers.remove(worker)
+                worker.close()
+                if worker.item is not None:
+                    done(worker.item, _dead_worker_result(items[worker.item], worker.process.exitcode))
+                elif not worker.ready:
+                    failed_starts += 1
+                    if failed_starts >= MAX_FAILED_STARTS:
+                        reason = f"worker processes fail to start ({_exit_reason(worker.process.exitcode)})"
+                        while queue:
+                            k = queue.popleft()
+                            done(k, ItemResult.failure(items[k], reason))
+    except BaseException:
+        _kill_workers(workers)
+        raise
+    finally:
+        for worker in workers:
+            worker.stop()
+        _kill_workers(workers, grace=5)
+        for worker in workers:
+            worker.conn.close()
+
+
+#: Workers in a row that may die before they are ready (a broken installation) before the
+#: queued items fail.
+MAX_FAILED_STARTS = 3
+_READY, _RESULT, _ERROR = "ready", "result", "error"
+
+
+class _Unsendable(Exception):
+    """An item that cannot be pickled for a worker process."""
+
+
+class _PoolWorker:
+    """One spawned worker process of :func:`_process_pool`, its pipe, and the index of the item
+    it runs (None when idle)."""
+
+    def __init__(self, ctx, threads: int) -> None:
+        from ..process import interrupts_blocked
+
+        self.conn, child = ctx.Pipe(duplex=True)
+        self.process = ctx.Process(target=_pool_worker_main, args=(child, threads, os.getpid()),
+                                   name="stereocli-worker")
         # Workers start with SIGINT/SIGTERM blocked and then ignore them: a Ctrl-C sent to the
         # whole process group is handled here alone.
         with interrupts_blocked():
-            futures = {pool.submit(run_one, item_fn, item, verbose_errors): k for k, item in enumerate(items)}
-        for fut in cf.as_completed(futures):
-            k = futures[fut]
+            self.process.start()
+        child.close()  # the worker's end: the parent sees EOF when the worker dies
+        self.ready = False
+        self.item: int | None = None
+
+    def give(self, k: int, task: tuple) -> bool:
+        """Send item ``k`` (the ``task`` tuple); False when the worker is gone. Raises
+        :class:`_Unsendable` when the task cannot be pickled."""
+        try:
+            payload = ForkingPickler.dumps(task)
+        except Exception as exc:  # noqa: BLE001 - e.g. an item function that is not importable
+            raise _Unsendable(f"cannot send the item to a worker process ({type(exc).__name__}: {exc})") from None
+        try:
+            self.conn.send_bytes(payload)
+        except OSError:
+            return False
+        self.item = k
+        return True
+
+    def receive(self, items: list[WorkItem]) -> list[tuple[int, ItemResult]]:
+        """The ``(k, result)`` outcomes the worker has sent (marking it ready or idle)."""
+        finished = []
+        while self.has_message():
             try:
-                res = fut.result()
-            except Exception as exc:  # noqa: BLE001 - a dead worker fails its item only
-                res = ItemResult.failure(items[k], f"worker died: {exc}")
-            done(k, res)
-    except BaseException:
-        _kill_workers(pool)
-        raise
-    finally:
-        pool.shutdown(wait=True, cancel_futures=True)
+                kind, *payload = self.conn.recv()
+            except (EOFError, OSError):
+                break  # died mid-message: the caller sees its process end
+            if kind == _READY:
+                self.ready = True
+            elif self.item is not None:
+                k = self.item
+                res = payload[0] if kind == _RESULT else ItemResult.failure(items[k], payload[0])
+                finished.append((k, res))
+                self.item = None
+        return finished
+
+    def has_message(self) -> bool:
+        """True when the pipe holds a message (or its end: the worker died)."""
+        try:
+            return not self.conn.closed and self.conn.poll()
+        except (EOFError, OSError):
+            return False
+
+    def stop(self) -> None:
+        """Ask an idle worker to exit."""
+        with contextlib.suppress(OSError, ValueError):
+            self.conn.send_bytes(ForkingPickler.dumps(None))
+
+    def close(self) -> None:
+        self.process.join(timeout=5)
+        self.conn.close()
 
 
-def _kill_workers(pool: cf.ProcessPoolExecutor) -> None:
-    """SIGKILL the pool's worker processes and wait for them (their items are abandoned)."""
-    processes = list((getattr(pool, "_processes", None) or {}).values())
-    for proc in processes:
-        if proc.is_alive():
-            proc.kill()
-    for proc in processes:
-        proc.join(timeout=5)
+def _pool_worker_main(conn, threads: int, parent_pid: int) -> None:
+    """A pool worker's loop: one item at a time from ``conn``, its outcome sent back."""
+    init_worker(threads, parent_pid)
+    conn.send((_READY,))
+    while True:
+        try:
+            data = conn.recv_bytes()
+        except (EOFError, OSError):
+            return
+        try:
+            task = pickle.loads(data)
+        except Exception as exc:  # noqa: BLE001 - e.g. the item function's module is missing here
+            conn.send((_ERROR, f"the worker process cannot load the item ({type(exc).__name__}: {exc})"))
+            continue
+        if task is None:
+            return
+        item_fn, item, verbose_errors = task
+        result = run_one(item_fn, item, verbose_errors)
+        try:
+            conn.send((_RESULT, result))
+        except Exception as exc:  # noqa: BLE001 - details that cannot be pickled
+            conn.send((_ERROR, f"its outcome cannot be sent back ({type(exc).__name__}: {exc})"))
+
+
+def _exit_reason(exitcode: int | None) -> str:
+    if exitcode is not None and exitcode < 0:
+        try:
+            return f"killed by {signal.Signals(-exitcode).name}"
+        except ValueError:
+            return f"killed by signal {-exitcode}"
+    return f"exit code {exitcode}"
+
+
+def _dead_worker_result(item: WorkItem, exitcode: int | None) -> ItemResult:
+    """The outcome of an item whose worker process died while running it: failed, or ok when
+    the worker had committed its outputs before it died (its details are lost)."""
+    if finished_in_run(item):
+        return ItemResult(item.name, "ok", message="finished; its details were lost (its worker process died "
+                          "after committing)", inputs=item.inputs, outputs=item.outputs)
+    return ItemResult.failure(item, f"worker process died while running this item ({_exit_reason(exitcode)})")
+
+
+def _kill_workers(workers: list[_PoolWorker], grace: float = 0) -> None:
+    """SIGKILL the worker processes still alive after ``grace`` seconds and wait for them (their
+    items are abandoned)."""
+    for worker in workers:
+        worker.process.join(timeout=grace)
+    for worker in workers:
+        if worker.process.is_alive():
+            worker.process.kill()
+    for worker in workers:
+        worker.process.join(timeout=5)
