@@ -153,6 +153,9 @@ CASES = [
     Case("calib-vmin-huge", "echoed values",
          lambda t, s: (["match", _calib_line("vmin", "v" * 100_000)(t, s), "-o", t / "out", "--viz", *FAST],
                        t / "out"), 1, "is not a number"),
+    Case("scheduler-huge", "echoed values",
+         lambda t, s: (["match", s, "-o", t / "out", "--scheduler", "tcp://" + "h" * 100_000 + ":8786", *FAST],
+                       t / "out"), 2, "--scheduler tcp://hhh"),
     # -- raw library messages that named no file
     Case("ndisp-auto-one-row", "library messages",
          lambda t, s: (["match", *_thin_pair(t, 1, 640), "-o", t / "out", "--ndisp", "auto"], t / "out"), 1,

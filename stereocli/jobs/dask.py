@@ -46,7 +46,7 @@ import time
 from pathlib import Path
 from typing import Any, Callable, Iterator, Sequence
 
-from ..errors import EXIT_USAGE, ConfigError
+from ..errors import EXIT_USAGE, ConfigError, excerpt
 from .items import ItemResult, WorkItem, finished_in_run, prepare_worker, run_one
 
 INSTALL_HINT = 'pip install "stereocli[dask]"'
@@ -80,13 +80,13 @@ def check_scheduler(scheduler: str | None) -> None:
         raise ConfigError("the dask executor needs --scheduler tcp://host:port (or --scheduler local)")
     m = _ADDRESS.match(scheduler)
     if scheduler != "local" and not m:
-        raise ConfigError(f"--scheduler {scheduler}: expected tcp://host:port (e.g. tcp://127.0.0.1:8786) or 'local'")
+        raise ConfigError(f"--scheduler {excerpt(scheduler)}: expected tcp://host:port (e.g. tcp://127.0.0.1:8786) or 'local'")
     require_distributed()
     if m and m.group(1):
         from distributed.comm.registry import backends
 
         if m.group(1) not in backends:
-            raise ConfigError(f"--scheduler {scheduler}: Dask has no {m.group(1)!r} protocol; "
+            raise ConfigError(f"--scheduler {excerpt(scheduler)}: Dask has no {m.group(1)!r} protocol; "
                               f"use one of {', '.join(sorted(backends))} (e.g. tcp://127.0.0.1:8786)")
 
 
@@ -114,12 +114,12 @@ def probe_scheduler(scheduler: str, timeout: float | None = None) -> None:
     try:
         reply = asyncio.run(bounded())
     except (asyncio.TimeoutError, TimeoutError):
-        raise ConfigError(f"--scheduler {scheduler}: no Dask scheduler answered within {timeout:g} s") from None
+        raise ConfigError(f"--scheduler {excerpt(scheduler)}: no Dask scheduler answered within {timeout:g} s") from None
     except Exception as exc:  # noqa: BLE001 - refused, reset, garbled handshake: not a scheduler
-        raise ConfigError(f"--scheduler {scheduler}: not a reachable Dask scheduler "
+        raise ConfigError(f"--scheduler {excerpt(scheduler)}: not a reachable Dask scheduler "
                           f"({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else 'no detail'})") from None
     if not isinstance(reply, dict) or reply.get("type") != "Scheduler":
-        raise ConfigError(f"--scheduler {scheduler}: the peer is not a Dask scheduler")
+        raise ConfigError(f"--scheduler {excerpt(scheduler)}: the peer is not a Dask scheduler")
 
 
 def quiet_dask_logs() -> None:
@@ -168,12 +168,12 @@ def connect(scheduler: str, jobs: int | None = None) -> Iterator[Any]:
             try:
                 client = distributed.Client(scheduler, timeout=f"{CONNECT_SECONDS}s", set_as_default=False)
             except (OSError, asyncio.TimeoutError) as exc:
-                raise ConfigError(f"--scheduler {scheduler}: cannot connect ({exc})") from None
+                raise ConfigError(f"--scheduler {excerpt(scheduler)}: cannot connect ({exc})") from None
             try:
                 client.wait_for_workers(1, timeout=WORKER_WAIT_SECONDS)
             except (OSError, asyncio.TimeoutError, TimeoutError):
                 _close(client)
-                raise ConfigError(f"--scheduler {scheduler}: no worker joined within {WORKER_WAIT_SECONDS} s "
+                raise ConfigError(f"--scheduler {excerpt(scheduler)}: no worker joined within {WORKER_WAIT_SECONDS} s "
                                   f"(start some with: dask worker {scheduler})") from None
         try:
             yield client
