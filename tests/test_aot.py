@@ -49,6 +49,7 @@ def _maps(monkeypatch, folder: Path | None) -> tuple[list[np.ndarray], dict]:
         monkeypatch.setenv("STEREOCLI_AOT", "1")
         monkeypatch.setenv("STEREOCLI_AOT_DIR", str(folder))
     monkeypatch.setattr(aot, "_table", [None])
+    monkeypatch.setattr(aot, "_why_not", [""])
     used: dict = {}
 
     def counted(kernel, args):
@@ -185,10 +186,12 @@ def test_the_record_says_whether_the_build_is_used_and_why_not(monkeypatch, buil
                            ("0", "none compiled at install (STEREOCLI_AOT=0): numba's JIT")):
         monkeypatch.setenv("STEREOCLI_AOT", flag)
         monkeypatch.setattr(aot, "_table", [None])
+        monkeypatch.setattr(aot, "_why_not", [""])
         assert aot.describe() == expected
     monkeypatch.setenv("STEREOCLI_AOT", "1")
     monkeypatch.setenv("STEREOCLI_AOT_DIR", str(tmp_path))
     monkeypatch.setattr(aot, "_table", [None])
+    monkeypatch.setattr(aot, "_why_not", [""])
     assert aot.describe() == f"none compiled at install (no build in {tmp_path}): numba's JIT"
 
 
@@ -268,11 +271,13 @@ def test_an_install_that_did_not_build_says_why_and_how_to_fix_it(monkeypatch, t
     monkeypatch.setenv("STEREOCLI_AOT", "1")
     monkeypatch.setenv("STEREOCLI_AOT_DIR", str(tmp_path))
     monkeypatch.setattr(aot, "_table", [None])
+    monkeypatch.setattr(aot, "_why_not", [""])
     assert aot.describe() == "none compiled at install (not built at install: CompileError: no C compiler): numba's JIT"
     advice = aot.missing_build_advice()
     assert "CompileError: no C compiler" in advice and "to build them: " in advice
     monkeypatch.setenv("STEREOCLI_AOT", "0")  # turned off on purpose: nothing to advise
     monkeypatch.setattr(aot, "_table", [None])
+    monkeypatch.setattr(aot, "_why_not", [""])
     assert aot.missing_build_advice() == ""
 
 
