@@ -41,12 +41,12 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from stereocli.match.config import build_config  # noqa: E402
-from stereocli.evaluate.api import EvalOptions, evaluate_pair, weighted_average  # noqa: E402
-from stereocli.evaluate.datasets import load_scene  # noqa: E402
+from stereocli.matching.config import build_config  # noqa: E402
+from stereocli.evaluation.api import EvalOptions, evaluate_pair, weighted_average  # noqa: E402
+from stereocli.evaluation.datasets import load_scene  # noqa: E402
 from stereocli.io.images import read_image  # noqa: E402
-from stereocli.match.kernels import set_threads as set_kernel_threads  # noqa: E402
-from stereocli.match.pipeline import match_pair  # noqa: E402
+from stereocli.matching.kernels import set_threads as set_kernel_threads  # noqa: E402
+from stereocli.matching.pipeline import match_pair  # noqa: E402
 from stereocli.process import keep_freed_memory, prepare_kernels  # noqa: E402
 
 keep_freed_memory()  # as the command line does: freed buffers stay in the process between pairs

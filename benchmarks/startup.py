@@ -9,7 +9,7 @@ the PFM (little endian, bottom row first). Cases:
 * ``folder``: the 15 MiddEval3-Q scenes (ranges from each ``calib.txt``) in one process.
 
 stereocli runs with its kernels compiled ahead of time (``pip install .``; in a checkout,
-``python -m stereocli.match.kernels.aot``) and, as a third process, without them
+``python -m stereocli.matching.kernels.aot``) and, as a third process, without them
 (``STEREOCLI_AOT=0``: every kernel from numba's cache).
 
 The processes take turns (A, B, C, A, B, C, ...) for ``--repeat`` rounds with warm numba caches

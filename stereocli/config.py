@@ -13,7 +13,7 @@ Precedence: the ``default`` preset < ``--config FILE`` < ``--set section.key=val
 higher layer names a different stage for a section, the lower layer's parameters for that
 section are dropped (they belonged to the other stage). Lists (``refinement``) are replaced
 whole; ``--set refinement.lr_check.max_diff=2`` edits the listed stage of that name.
-This module works on plain dicts; :mod:`stereocli.match.config` resolves the stages and
+This module works on plain dicts; :mod:`stereocli.matching.config` resolves the stages and
 validates their parameters.
 """
 

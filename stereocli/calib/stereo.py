@@ -242,7 +242,7 @@ def calibrate_stereo(views: list[View], image_size: tuple[int, int], pattern: Pa
 
     calib = StereoCalibration(K1=K1, D1=D1, K2=K2, D2=D2, R=R, T=T, image_size=image_size, rms=float(rms),
                               units=pattern.units, model="fisheye" if opts.fisheye else "pinhole")
-    from ..rectify.maps import rectified_calibration, stereo_rectify
+    from ..rectification.maps import rectified_calibration, stereo_rectify
 
     rect = stereo_rectify(calib, alpha=opts.alpha)
     calib = rectified_calibration(calib, rect=rect)

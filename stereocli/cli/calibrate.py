@@ -163,7 +163,7 @@ def convert_calib_cmd(ctx, src, dst, fmt, alpha, ndisp, overwrite):
       stereocli convert-calib camchain.yaml calib.txt --to middlebury
     """
     from ..io.calib import load_calibration, save_calibration
-    from ..rectify.maps import rectified_calibration
+    from ..rectification.maps import rectified_calibration
 
     dst = Path(dst)
     if fmt is None:

@@ -66,7 +66,7 @@ class DisparityRange:
 
 @functools.lru_cache(maxsize=8)
 def _coarse_config(speckle: int):
-    from ..match.config import validate
+    from ..matching.config import validate
 
     return validate({
         "cost": {"name": "census", "window": [5, 5]},
@@ -97,7 +97,7 @@ def _textured(image: np.ndarray) -> np.ndarray:
 def coarse_disparities(left: np.ndarray, right: np.ndarray, lo: float, hi: float) -> tuple[np.ndarray, int, float]:
     """Confident disparities (px, full resolution) of a coarse dense match searching ``[lo, hi]``
     px; returns ``(values, scale, valid fraction)``."""
-    from ..match.pipeline import match_pair
+    from ..matching.pipeline import match_pair
 
     h, w = left.shape[:2]
     scale = max(1, int(round(w / COARSE_WIDTH)))

@@ -19,9 +19,9 @@ config's ``row_align`` when it tracks the rows and the range is known, else (or 
 no measurement) from sparse matches (:mod:`stereocli.features.alignment`). A misaligned pair is
 reported with a warning, or fails with ``require_aligned`` (before any output is written).
 
-With ``split_strips`` the item task runs :func:`~stereocli.match.pipeline.prepare` and
-:func:`~stereocli.match.pipeline.finish` itself and sends each strip's volume stages
-(:func:`~stereocli.match.pipeline.run_strip`, a pure function of the cropped strip state and
+With ``split_strips`` the item task runs :func:`~stereocli.matching.pipeline.prepare` and
+:func:`~stereocli.matching.pipeline.finish` itself and sends each strip's volume stages
+(:func:`~stereocli.matching.pipeline.run_strip`, a pure function of the cropped strip state and
 the config) to the cluster as a sub-task (:func:`strip_task`). Strips are stitched in plan
 order, so the result is bit-identical to matching in one process with the same config,
 whichever workers ran the strips.
@@ -42,8 +42,8 @@ from ..io.pairs import StereoInput
 from .items import WorkItem, label_message, prepare_worker
 
 if TYPE_CHECKING:
-    from ..match.pipeline import PreparedPair, StripMap, StripResult
-    from ..match.state import MatchState
+    from ..matching.pipeline import PreparedPair, StripMap, StripResult
+    from ..matching.state import MatchState
 
 _CONFIG_CACHE: dict[str, Any] = {}
 
@@ -144,7 +144,7 @@ def plan_items(
 
 def _config(config: dict):
     # Workers validate the config once per process, not once per item.
-    from ..match.config import validate
+    from ..matching.config import validate
 
     key = json.dumps(config, sort_keys=True)
     if key not in _CONFIG_CACHE:
@@ -165,9 +165,9 @@ _WARMED: set = set()
 
 
 def _tiny_match(config, *, channels: int, dtype: np.dtype, min_disp: int, ndisp: int, masks: bool, **flags):
-    """:func:`~stereocli.match.pipeline.match_pair` on a small random pair of this kind
+    """:func:`~stereocli.matching.pipeline.match_pair` on a small random pair of this kind
     (channels, dtype, valid masks, wanted outputs) with at most 32 disparities."""
-    from ..match.pipeline import match_pair
+    from ..matching.pipeline import match_pair
 
     nd = max(1, min(int(ndisp), 32))
     h, w = 48, nd + 64
@@ -184,8 +184,8 @@ def _tiny_match(config, *, channels: int, dtype: np.dtype, min_disp: int, ndisp:
 def _warm_up(config, left: np.ndarray, *, min_disp: int, ndisp: int, masks: bool, **flags) -> None:
     """Once per process and kind of call, match a tiny pair first, so that the time of the first
     real pair (``time.txt``) holds matching, not loading (or compiling) the kernels. The tiny
-    pair takes the code path of the real one (:func:`~stereocli.match.config.small_twin`)."""
-    from ..match.config import small_twin
+    pair takes the code path of the real one (:func:`~stereocli.matching.config.small_twin`)."""
+    from ..matching.config import small_twin
 
     twin = small_twin(config, left.shape[0], left.shape[1], ndisp)
     key = (id(config), repr(twin.as_dict()), left.ndim, left.dtype.str, masks, tuple(sorted(flags.items())))
@@ -217,7 +217,7 @@ def _read_views(item: WorkItem, gray: bool = False) -> tuple[np.ndarray, np.ndar
     decodes: 10 of a MiddEval3-Q pair's 20 ms of PNG decoding). A file's error is raised as
     reading it alone would."""
     from ..io.images import read_image
-    from ..match.kernels import side_by_side
+    from ..matching.kernels import side_by_side
 
     return side_by_side(lambda: read_image(item.inputs["left"], gray=gray),
                         lambda: read_image(item.inputs["right"], gray=gray))
@@ -227,7 +227,7 @@ def match_item(item: WorkItem) -> dict:
     """Match one pair and write its outputs atomically; returns details for the run record."""
     from ..io.images import write_disparity, write_image
     from ..io.pfm import write_pfm
-    from ..match.pipeline import match_pair
+    from ..matching.pipeline import match_pair
 
     opts = item.options
     config = _config(opts["config"])
@@ -301,7 +301,7 @@ def match_item(item: WorkItem) -> dict:
         details["warnings"] = [*details.get("warnings", []),
                                f"disp0.png: {png16_lost} valid pixels outside [1, 65535] / {opts['png16_scale']:g} px "
                                "written as 0 (invalid); disp0.pfm has them"]
-    from ..match.kernels.aot import describe
+    from ..matching.kernels.aot import describe
 
     params = {"pair": item.name, "inputs": item.inputs, "config": opts["config"], **details,
               "kernels": describe(), **opts.get("record", {})}
@@ -407,14 +407,14 @@ def _rows_from_match(name: str, note: dict | None, left: np.ndarray, right: np.n
 
 
 def cluster_strip_map(config_dict: dict) -> StripMap:
-    """A ``strip_map`` for :func:`~stereocli.match.pipeline.match_pair` that spreads strips over
+    """A ``strip_map`` for :func:`~stereocli.matching.pipeline.match_pair` that spreads strips over
     the cluster the calling task runs on (in-process when there is one strip or no cluster).
 
     ``config_dict`` is the effective config as a plain dict: workers validate it once per process.
     """
 
     def strip_map(prepared: PreparedPair, config) -> list[StripResult]:
-        from ..match.pipeline import run_strips, strip_input
+        from ..matching.pipeline import run_strips, strip_input
         from .dask import in_worker, worker_map
 
         if len(prepared.strips) < 2 or not in_worker():
@@ -429,7 +429,7 @@ def cluster_strip_map(config_dict: dict) -> StripMap:
 
 def strip_task(sub: MatchState, config_dict: dict, y0: int, y1: int, keep_invalid: bool) -> StripResult:
     """Sub-task body: the volume stages of one strip, on whichever worker runs it."""
-    from ..match.pipeline import run_strip
+    from ..matching.pipeline import run_strip
 
     prepare_worker()
     return run_strip(sub, _config(config_dict), y0, y1, keep_invalid=keep_invalid)

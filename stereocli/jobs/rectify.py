@@ -47,7 +47,7 @@ def _outputs(folder: Path, check: bool, *more: str) -> dict[str, str]:
 
 def _maps_for(calib_path: str, alpha: float, size):
     from ..io.calib import load_calibration
-    from ..rectify.maps import build_maps
+    from ..rectification.maps import build_maps
 
     p = Path(calib_path)
     key = (str(p.resolve()), p.stat().st_mtime_ns, alpha, tuple(size) if size else None)
@@ -69,7 +69,7 @@ def _rectified_range(left, right, rect, opts: dict) -> tuple[int, dict]:
     ``--min-depth``).
     """
     from ..features.disparity_range import estimate_range
-    from ..rectify.maps import estimate_ndisp
+    from ..rectification.maps import estimate_ndisp
 
     if opts["ndisp"]:
         return int(opts["ndisp"]), {"source": "option"}
@@ -88,7 +88,7 @@ def rectify_item(item: WorkItem) -> dict:
     from ..io.calib import to_middlebury
     from ..io.images import read_image, write_image
     from ..io.middlebury import write_calib_txt
-    from ..rectify.maps import check_image, rectified_calibration, rectify_images
+    from ..rectification.maps import check_image, rectified_calibration, rectify_images
 
     opts = item.options
     calib, maps = _maps_for(item.inputs["calibration"], opts["alpha"], opts["size"])
@@ -158,7 +158,7 @@ def estimate_uncalibrated(items: list[WorkItem], *, per_pair: bool = False) -> d
     ``per_pair`` one per item) and store them in each item's options; an item that cannot be
     rectified gets its ``error`` (it fails alone). Returns the report of every estimate."""
     from ..errors import StereoError
-    from ..rectify.uncalibrated import estimate_rectification
+    from ..rectification.uncalibrated import estimate_rectification
 
     groups = [[item] for item in items] if per_pair else [items]
     rigs = []
@@ -205,8 +205,8 @@ def rectify_uncalibrated_item(item: WorkItem) -> dict:
     from ..io.atomic import write_text
     from ..io.images import read_image, write_image
     from ..io.middlebury import write_calib_txt
-    from ..rectify.maps import check_image, inner_box
-    from ..rectify.uncalibrated import UncalibratedRectification, warp_pair
+    from ..rectification.maps import check_image, inner_box
+    from ..rectification.uncalibrated import UncalibratedRectification, warp_pair
 
     opts = item.options
     rect = UncalibratedRectification.from_dict(opts["rectification"])

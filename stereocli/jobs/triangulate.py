@@ -140,7 +140,7 @@ def triangulate_item(item: WorkItem) -> dict:
     from ..io.calib import load_calibration
     from ..io.images import read_disparity, read_image
     from ..io.ply import write_ply
-    from ..triangulate import (FRAME, depth_from_disparity, geometry_from_calibration, summarize, triangulate,
+    from ..triangulation import (FRAME, depth_from_disparity, geometry_from_calibration, summarize, triangulate,
                                write_depth, write_depth_png16_mm)
 
     o = item.options

@@ -55,7 +55,7 @@ def fuse_with_mirrored(disparity: np.ndarray, right_map: np.ndarray, tolerance: 
     """(H, W) float32: the mean of each left pixel's disparity and ``right_map`` at the pixel it
     matches (:func:`sample_right_map`) where the two differ by less than ``tolerance`` px; the
     left disparity elsewhere (invalid pixels stay invalid). One compiled pass over the rows
-    (:func:`~stereocli.match.kernels.maps.fuse_mirrored`; 0.5 ms instead of 9 with numpy
+    (:func:`~stereocli.matching.kernels.maps.fuse_mirrored`; 0.5 ms instead of 9 with numpy
     temporaries on a 0.35 MP pair)."""
     return km.fuse_mirrored(np.ascontiguousarray(disparity, dtype=np.float32),
                             np.ascontiguousarray(right_map, dtype=np.float32), tolerance)
@@ -69,7 +69,7 @@ def reassign_contradicted(disparity: np.ndarray, right_map: np.ndarray, above: f
     ``right_map`` read at ``x − c`` is within ``within`` px of ``c`` (the best confirmed; the
     nearest on a tie, along the row first, the right or lower side first); every other pixel
     keeps its value. All pixels decide on the input map. One compiled pass over the rows
-    (:func:`~stereocli.match.kernels.maps.reassign_contradicted`)."""
+    (:func:`~stereocli.matching.kernels.maps.reassign_contradicted`)."""
     return km.reassign_contradicted(np.ascontiguousarray(disparity, dtype=np.float32),
                                     np.ascontiguousarray(right_map, dtype=np.float32), above, radius, within)
 

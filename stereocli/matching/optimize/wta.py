@@ -1,8 +1,8 @@
 """Winner-take-all: each pixel takes the disparity of its lowest cost (local methods).
 
 With a cost stage that offers a fused kernel (``sad``, ``stad``) the pipeline may run cost +
-WTA in one pass without the volume (:func:`stereocli.match.pipeline.fused_cost_wta`); the
-pass leaves :class:`~stereocli.match.state.WinnerCosts` instead of ``cost``, from which the
+WTA in one pass without the volume (:func:`stereocli.matching.pipeline.fused_cost_wta`); the
+pass leaves :class:`~stereocli.matching.state.WinnerCosts` instead of ``cost``, from which the
 volume refinements' ``on_winner_costs`` variants read what they would have read from the volume.
 """
 
@@ -30,13 +30,13 @@ def check_winner_coverage(missing: int, stage: str) -> None:
     """
     if missing:
         raise RuntimeError(f"refinement.{stage}: {missing} pixels need costs beyond the WTA winner's "
-                           "neighbours; run without the fused path (stereocli.match.pipeline.FUSED = False)")
+                           "neighbours; run without the fused path (stereocli.matching.pipeline.FUSED = False)")
 
 
 def subpixel_on_winner(winner: WinnerCosts, disparity: np.ndarray, min_disp: int, ndisp: int,
                        equiangular: bool, stage: str = "subpixel", right: bool = False) -> np.ndarray:
     """Sub-pixel refinement of the WTA disparities from ``winner`` (same result as
-    :func:`~stereocli.match.kernels.winners.subpixel_left` on the volume; ``right``: the
+    :func:`~stereocli.matching.kernels.winners.subpixel_left` on the volume; ``right``: the
     right-view map from ``winner.costs_right``)."""
     if right:
         refined, missing = subpixel_winner(winner.disparity_right, winner.costs_right, disparity, min_disp, ndisp,

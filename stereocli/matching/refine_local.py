@@ -1,6 +1,6 @@
 """Outlier handling for local (area-based) matchers: single matching phase, texture threshold.
 
-The uniqueness-ratio test lives in :mod:`stereocli.match.refine` (stage ``uniqueness``); these
+The uniqueness-ratio test lives in :mod:`stereocli.matching.refine` (stage ``uniqueness``); these
 stages complement it. Both mark rejected pixels +inf (invalid).
 """
 

@@ -327,7 +327,7 @@ def hamming_runs(census_left, census_right, min_disp: int, cost_max: float, run_
                  right_valid, support=NO_SUPPORT):
     """Hamming costs on each pixel's run of hypotheses ``[run_lo, run_hi)`` only, stored ragged
     (pixel (y, x) at ``offset[y, x]``, uint8; the layout of
-    :mod:`stereocli.match.kernels.sgm_window`). ``cost_max`` where the right pixel is outside
+    :mod:`stereocli.matching.kernels.sgm_window`). ``cost_max`` where the right pixel is outside
     the image or, if ``right_valid`` is not empty, outside its valid mask. ``support``: the
     ``(planes, scale)`` of :func:`support_planes` for weighted distances (``cost_max`` must
     then be its range), or :data:`NO_SUPPORT`."""

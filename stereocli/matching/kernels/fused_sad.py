@@ -1,6 +1,6 @@
 """Fused window-AD cost + winner-take-all: SAD/STAD disparities without a cost volume.
 
-The (H, W, D) float32 volume of :func:`~stereocli.match.kernels.costs.window_cost_volume`
+The (H, W, D) float32 volume of :func:`~stereocli.matching.kernels.costs.window_cost_volume`
 costs 4·H·W·D bytes of memory traffic to write and as much again for WTA to read; OpenCV's
 StereoBM never stores it. This kernel runs the same running sums (Di Stefano, Marchionni &
 Mattoccia, IVC 2004) and takes each pixel's decision as soon as its window sums are known:
@@ -263,7 +263,7 @@ def sad_wta(left: np.ndarray, right: np.ndarray, right_valid: np.ndarray, min_di
 
 
 # --- sub-pixel refinement from the winner costs (the single matching phase's twin lives in
-# stereocli.match.refine_local) -------------------------------------------------------------
+# stereocli.matching.refine_local) -------------------------------------------------------------
 
 
 @chunk_kernel
@@ -289,7 +289,7 @@ def _subpixel_winner_rows(wdisp, wcosts, disp, min_disp: int, ndisp: int, equian
 
 def subpixel_winner(wdisp: np.ndarray, wcosts: np.ndarray, disp: np.ndarray, min_disp: int, ndisp: int,
                     equiangular: bool, left: bool = True):
-    """:func:`~stereocli.match.kernels.winners.subpixel_left` on the winner costs.
+    """:func:`~stereocli.matching.kernels.winners.subpixel_left` on the winner costs.
 
     Same rule (fit through the costs at k − 1, k, k + 1 with ``k = int(disp) − min_disp``, ends
     of the range and neighbours outside the image keep the integer). Returns ``(refined,

@@ -13,8 +13,8 @@ Coarse-to-fine search (``coarse: true``, the default preset): the same SGM over 
 at half resolution (:func:`coarse_disparity`) sets each pixel's window of hypotheses
 (:func:`search_windows`); the costs are computed on the windows only (the cost stage's
 ``windowed`` kernel, else gathered from its dense volume) and a windowed SGM
-(:mod:`stereocli.match.kernels.sgm_window`) runs on them. It leaves
-:class:`~stereocli.match.state.WinnerCosts` (the sums around each winner, both views, and the
+(:mod:`stereocli.matching.kernels.sgm_window`) runs on them. It leaves
+:class:`~stereocli.matching.state.WinnerCosts` (the sums around each winner, both views, and the
 second-best sum when a stage reads it) instead of a volume, or the sums expanded to a dense
 volume when a later stage needs one. Memory and time scale with the windows (about a fifth
 of H·W·D on MiddEval3).
@@ -69,7 +69,7 @@ def quantization(cost_max: float, paths: int, p1: float, p2: float, levels: int)
 
     Costs in ``[0, cost_max]`` map to ``[0, cap]`` with ``cap ≤ levels``; the penalties are
     fractions of ``cost_max``. The scale is reduced if needed so ``paths · (cap + P2) ≤ 65534``,
-    which bounds the uint16 path sums (see :mod:`stereocli.match.kernels.sgm`).
+    which bounds the uint16 path sums (see :mod:`stereocli.matching.kernels.sgm`).
     """
     cmax = cost_max if cost_max > 0 else 1.0
     p2 = max(p2, p1)

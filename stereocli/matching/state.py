@@ -33,7 +33,7 @@ What a stage reads about a stage is in its :class:`~stereocli.registry.StageTrai
 rest of the pipeline asks of a stage is in :attr:`MatchState.wants` (:class:`Wants`), set by
 the pipeline from the config and the requested outputs.
 
-Fused cost + WTA (see :mod:`stereocli.match.pipeline`): when a cost stage offers a
+Fused cost + WTA (see :mod:`stereocli.matching.pipeline`): when a cost stage offers a
 ``fused_wta`` trait, the pipeline is ``cost → wta`` with no aggregation, no right-view
 disparity is wanted and every ``needs_cost`` refinement offers an ``on_winner_costs``
 variant, the volume is never built: ``fused_wta`` sets ``disparity`` (exactly what cost +

@@ -633,7 +633,7 @@ def _single_matching_phase_winner_rows(disp, wdisp, wcosts, min_disp: int, ndisp
 def single_matching_phase_winner_kernel(disp: np.ndarray, wdisp: np.ndarray, wcosts: np.ndarray,
                                         min_disp: int, ndisp: int):
     """:func:`single_matching_phase_kernel` with the claim costs read from the costs kept around
-    each WTA winner (fused cost + WTA path, :class:`~stereocli.match.state.WinnerCosts`).
+    each WTA winner (fused cost + WTA path, :class:`~stereocli.matching.state.WinnerCosts`).
 
     Returns ``(out, missing)``; ``missing`` counts pixels whose ``round(disp)`` is more than 1
     from the winner ``wdisp`` (none right after WTA or sub-pixel refinement).

@@ -1,6 +1,6 @@
 """Scoring one pair or a results folder against ground truth: the library behind ``stereocli eval``.
 
-``evaluate_pair`` scores one estimate against one :class:`~stereocli.evaluate.datasets.Scene`;
+``evaluate_pair`` scores one estimate against one :class:`~stereocli.evaluation.datasets.Scene`;
 ``evaluate_folder`` matches a results folder with a GT folder by scene name (missing results
 are failures, never silently skipped); ``evaluate`` accepts whatever the command line got (a
 file or a folder on either side). All return plain dataclasses whose ``as_dict()`` is the JSON
@@ -323,7 +323,7 @@ def evaluate_pair(
 class SceneTask:
     """One GT scene to score, as paths (picklable, cheap to send to a worker).
 
-    ``kind`` is the GT layout (:class:`~stereocli.evaluate.datasets.GTEntry`), ``gt`` the scene
+    ``kind`` is the GT layout (:class:`~stereocli.evaluation.datasets.GTEntry`), ``gt`` the scene
     folder or KITTI root, ``result`` the disparity file, ``time`` its ``time.txt`` if any.
     """
 

@@ -58,7 +58,7 @@ def _pair_cost(a: np.ndarray, b: np.ndarray, model: str, trunc: float) -> np.nda
 
 
 def energy(data: np.ndarray, labels: np.ndarray, wh: np.ndarray, wv: np.ndarray, lam: float, model: str, trunc: float) -> float:
-    """E(labels) of :mod:`this module's <stereocli.match.optimize.gc>` energy (for tests)."""
+    """E(labels) of :mod:`this module's <stereocli.matching.optimize.gc>` energy (for tests)."""
     unary = np.take_along_axis(data, labels[..., None], 2).sum(dtype=np.float64)
     ph = _pair_cost(labels[:, :-1], labels[:, 1:], model, trunc) * wh[:, :-1]
     pv = _pair_cost(labels[:-1], labels[1:], model, trunc) * wv[:-1]

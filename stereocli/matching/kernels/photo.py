@@ -1,5 +1,5 @@
 """Compiled kernels of the photo-consistency re-decision: the colour residual of a map and the
-re-decision of the pixels it flags (:mod:`stereocli.match.refine_photo`)."""
+re-decision of the pixels it flags (:mod:`stereocli.matching.refine_photo`)."""
 
 from __future__ import annotations
 
@@ -44,7 +44,7 @@ def _residual_at(left, right, disp, y: int, x: int):
 @njit(cache=True, inline="always")
 def _mean3(residual, y: int, x: int):
     """The mean of ``residual`` over the 3x3 window around (y, x), clipped at the borders: one
-    pixel's value of :func:`~stereocli.match.cost.box_mean_image` with radius 1."""
+    pixel's value of :func:`~stereocli.matching.cost.box_mean_image` with radius 1."""
     h, w = residual.shape
     total = np.float32(0)
     count = 0

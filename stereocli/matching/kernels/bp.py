@@ -5,7 +5,7 @@ Messages are stored by the pixel that *receives* them: ``from_l[y, x]`` is the m
 (x-1, y) to (x, y), ``from_r`` from (x+1, y), ``from_u`` from (x, y-1), ``from_d`` from (x, y+1);
 each is an (H, W, D) float32 array. The smoothness term between neighbours p, q is
 ``λ·w_pq·min(|d_p − d_q|, T)`` (truncated linear), so each message update is the O(D)
-distance transform of :func:`stereocli.match.kernels.dp._dt_truncated_linear`.
+distance transform of :func:`stereocli.matching.kernels.dp._dt_truncated_linear`.
 Updates follow the checkerboard schedule (FH §3.2): pixels with ``(x + y + parity) % 2 == 0``
 send while the others only receive, so a parallel sweep over rows never races.
 """

@@ -159,7 +159,7 @@ def warm_up(configs: dict[str, PipelineConfig], *, jobs: int = 1, report=None) -
     try:
         for slot in slots:
             payload = json.dumps([[label, task, configs[label].as_dict()] for label, task in slot])
-            worker = subprocess.Popen([sys.executable, "-m", "stereocli.match.warmup"], cwd=PACKAGE_ROOT,
+            worker = subprocess.Popen([sys.executable, "-m", "stereocli.matching.warmup"], cwd=PACKAGE_ROOT,
                                       stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
                                       text=True)
             workers.append(worker)
@@ -194,7 +194,7 @@ def warm_up_first_run(config: PipelineConfig | None) -> None:
 
 
 def _main() -> None:
-    """``python -m stereocli.match.warmup``: runs the ``[label, task, config]`` list read as JSON
+    """``python -m stereocli.matching.warmup``: runs the ``[label, task, config]`` list read as JSON
     on stdin; prints ``[label, task, seconds]`` per task. Leaves Ctrl-C to its parent (which
     stops it) and exits when the parent is gone."""
     from ..process import prepare_kernels, worker_signals

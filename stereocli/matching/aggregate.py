@@ -53,7 +53,7 @@ def _lab(image: np.ndarray) -> np.ndarray:
 
 def _with_volume_copies(n: float):
     def mark(func):
-        func.volume_copies = n  # read by stereocli.match.pipeline.volume_copies
+        func.volume_copies = n  # read by stereocli.matching.pipeline.volume_copies
         return func
 
     return mark

@@ -675,7 +675,7 @@ def local_consistency_line(disp, bins, centres, left_packed, right_packed, min_d
     """Mattoccia's locally consistent vote along one line per pixel: the row segment
     ``|x' − x| ≤ radius`` (or, ``vertical``, the column segment) instead of the square window.
 
-    ``bins`` (H, W) int32 from :func:`~stereocli.match.kernels.maps.disparity_bins`; ``centres`` (N,) int64 ascending flat
+    ``bins`` (H, W) int32 from :func:`~stereocli.matching.kernels.maps.disparity_bins`; ``centres`` (N,) int64 ascending flat
     indices ``y·W + x`` of :func:`line_centre_mask`'s pixels; ``left_packed``/``right_packed`` (H, W) int64 from
     :func:`packed_quarter_levels`. Every valid g on the segment of f votes for its bin with
     ``spatial[t + radius] · colour_w[ΔL(f, g)] · match_w[ΔR(f − d_g, g − d_g)]`` (t = g − f;
@@ -950,7 +950,7 @@ def geodesic_vote_line(disp, bins, packed, centre, passed, min_change: int, max_
     mean disparity of the winning bin when it is at least ``min_change`` bins from their own
     and its mass at least ``min_lead`` times their own bin's; the others keep their value.
     ``disp`` (H, W) float32 +inf invalid; ``bins`` from
-    :func:`~stereocli.match.kernels.maps.disparity_bins`, all below ``n_bins``. Returns the new map.
+    :func:`~stereocli.matching.kernels.maps.disparity_bins`, all below ``n_bins``. Returns the new map.
     """
     out = disp.copy()
     n_lines = bins.shape[1] if vertical else bins.shape[0]

@@ -29,7 +29,7 @@ def region_vote(disp: np.ndarray, arms: np.ndarray, min_disp: int, ndisp: int, m
 
     The support of p is the union of the horizontal arms of the pixels on p's vertical arm
     (Mei et al. 2011, §4, "iterative region voting"); ``arms`` (H, W, 4) int32 as
-    :func:`stereocli.match.kernels.aggregation.cross_arms_two_threshold` gives them. Reliable (finite) disparities vote into
+    :func:`stereocli.matching.kernels.aggregation.cross_arms_two_threshold` gives them. Reliable (finite) disparities vote into
     1-px bins ``round(d) − min_disp``; with S votes and H* in the fullest bin, p takes the mean
     of the votes in that bin when S ≥ ``min_votes`` and H*/S ≥ ``min_share``, else stays
     +inf. ``stride`` > 1 samples the support on a grid of that step through p (every
@@ -108,7 +108,7 @@ def proper_interpolation(disp: np.ndarray, label: np.ndarray, image: np.ndarray,
     """Fill outliers from the nearest reliable pixels along 16 directions (Mei et al. 2011, §4).
 
     ``label`` (H, W) uint8: 0 reliable, 1 occluded, 2 mismatched (e.g. from
-    :func:`stereocli.match.kernels.refine.classify_holes`). Occluded pixels take the
+    :func:`stereocli.matching.kernels.refine.classify_holes`). Occluded pixels take the
     smallest found disparity (an occlusion belongs to the background surface); mismatched
     ones the disparity of the found pixel whose colour is most similar (sum of absolute
     channel differences), since a mismatch lies inside some visible surface. Only reliable

@@ -11,7 +11,7 @@ The disparity comes from coarse to fine: at the coarsest level (1/2^(levels−1)
 disparity map seeds ``iterations`` rounds of "MI table → cost → SGM"; each finer level runs one
 round starting from the previous level's disparity (doubled and upsampled). The full-resolution
 cost uses the table of the finest round. Occluded/mismatched pixels are excluded from the
-histograms by a left-right check. The nested SGM uses :func:`stereocli.match.optimize.sgm.run_sgm`
+histograms by a left-right check. The nested SGM uses :func:`stereocli.matching.optimize.sgm.run_sgm`
 with its default penalties.
 """
 

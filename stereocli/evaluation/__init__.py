@@ -2,7 +2,7 @@
 
 Library entry points (no Click here)::
 
-    from stereocli.evaluate import evaluate_folder, evaluate_pair, format_table
+    from stereocli.evaluation import evaluate_folder, evaluate_pair, format_table
     report = evaluate_folder("out", "../shared/data/middlebury2014/trainingQ")
     print(format_table(report, "markdown"))
     report.average["nonocc"]["bad2.0"]

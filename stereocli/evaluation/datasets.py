@@ -9,7 +9,7 @@ Layouts (auto-detected per folder, overridable with ``dataset=``):
   unknown; the smallest ``k`` is the left GT (``disp2`` for im2, ``disp3`` for Tsukuba's im3)
   and a larger one (``disp6``) the right-view GT. Official region masks (``nonocc*``, ``all*``,
   ``disc*``, 255 = scored) are used when present, otherwise the non-occluded mask is derived
-  (:func:`stereocli.evaluate.metrics.derive_nonocc_mask`) and labelled as derived.
+  (:func:`stereocli.evaluation.metrics.derive_nonocc_mask`) and labelled as derived.
 * ``kitti`` (2015): a root holding ``disp_noc_0/<name>.png`` and/or ``disp_occ_0/<name>.png``
   (uint16, d * 256, 0 invalid), optional ``obj_map/<name>.png`` and ``image_2/<name>.png``.
 """

@@ -5,7 +5,7 @@ shared by two threads, every path through the whole image) as :mod:`.sgm` (read 
 docstring first), with each pixel
 ``p`` searching only ``[lo(p), hi(p))`` (volume indices) instead of the whole range. The
 windows come from a coarse disparity map
-(:func:`stereocli.match.optimize.sgm.search_windows`), in the spirit of Rothermel et al.'s
+(:func:`stereocli.matching.optimize.sgm.search_windows`), in the spirit of Rothermel et al.'s
 tSGM ("SURE: photogrammetric surface reconstruction from imagery", 2012).
 
 * Path costs are defined on each pixel's window and are +∞ outside it. A step from the

@@ -150,7 +150,7 @@ def geodesic_vote(state: MatchState, p: GeodesicVoteParams) -> None:
 
 def _colour_steps(channels: int) -> np.ndarray:
     """The vote tables' index: a summed channel difference in quarter grey levels (what
-    :func:`~stereocli.match.kernels.segment.packed_quarter_levels` colours give), as the mean
+    :func:`~stereocli.matching.kernels.segment.packed_quarter_levels` colours give), as the mean
     channel difference in grey levels, for every possible value."""
     return np.arange(1020 * channels + 1) * (0.25 / channels)
 
@@ -233,7 +233,7 @@ def segment_image(image: np.ndarray, spatial_radius: int, colour_radius: float, 
 
 
 def fit_segment_planes(disp: np.ndarray, labels: np.ndarray, p: PlaneFitParams):
-    """Planes per segment (see :func:`stereocli.match.kernels.segment.fit_planes`)."""
+    """Planes per segment (see :func:`stereocli.matching.kernels.segment.fit_planes`)."""
     order, starts, counts = ks.pixels_by_segment(labels)
     planes, support, inliers = ks.fit_planes(
         np.ascontiguousarray(disp, dtype=np.float32), labels, order, starts,

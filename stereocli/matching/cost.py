@@ -1,6 +1,6 @@
 """Matching-cost stages: build the (H, W, D) float32 cost volume (lower is better).
 
-The cost volume is the contract between stages (see :mod:`stereocli.match.state`):
+The cost volume is the contract between stages (see :mod:`stereocli.matching.state`):
 ``cost[y, x, k]`` is the dissimilarity of left pixel (x, y) and right pixel
 (x − (min_disp + k), y); shape (H, W, D) with D = ``ndisp``, C-contiguous float32 (4 bytes
 per entry: a 1000×750 image with D = 128 is 384 MB; the pipeline splits larger jobs into row
@@ -156,9 +156,9 @@ def _windowed_truncated_ad_wta(state: MatchState, p, winner: bool) -> None:
 
     Sets ``disparity`` bit-identical to running the cost stage, the right-valid masking and
     ``wta`` (same float32 operations in the same order and bands,
-    :mod:`~stereocli.match.kernels.fused_sad`), and with ``winner`` also ``state.winner`` (the
+    :mod:`~stereocli.matching.kernels.fused_sad`), and with ``winner`` also ``state.winner`` (the
     costs at k − 1, k, k + 1 of each winner, for the volume refinements); ``cost`` stays None.
-    Called by the pipeline (:func:`stereocli.match.pipeline.fused_cost_wta`).
+    Called by the pipeline (:func:`stereocli.matching.pipeline.fused_cost_wta`).
     """
     left = _channels(state.left)
     mask = state.right_valid if state.right_valid is not None else np.zeros((0, 0), np.bool_)
@@ -191,7 +191,7 @@ def sad_cost(state: MatchState, p: WindowADParams) -> None:
     classic fixed-window trade-off: bigger windows are more reliable in weak texture and
     fatten foreground objects at depth edges (Scharstein & Szeliski 2002, §5). Followed
     directly by ``wta`` (no aggregation), the pipeline fuses cost and WTA and never stores the
-    volume (same output, several times faster; see :mod:`stereocli.match.pipeline`).
+    volume (same output, several times faster; see :mod:`stereocli.matching.pipeline`).
     """
     _windowed_truncated_ad(state, p)
 
@@ -391,7 +391,7 @@ def _census_strings(state: MatchState, window: tuple[int, int]) -> tuple[np.ndar
 
 def _census_support(state: MatchState, p: CensusParams) -> tuple[tuple[np.ndarray, np.ndarray], float]:
     """``(support, cost_max)`` of the census distances: the bit weights of
-    :func:`~stereocli.match.kernels.census.support_planes` on the left image with ``gamma_c``
+    :func:`~stereocli.matching.kernels.census.support_planes` on the left image with ``gamma_c``
     > 0, else plain Hamming distances (range: the number of bits)."""
     wh, ww = p.window
     if p.gamma_c <= 0:
@@ -402,7 +402,7 @@ def _census_support(state: MatchState, p: CensusParams) -> tuple[tuple[np.ndarra
 
 def _census_windowed(state: MatchState, p: CensusParams, runs) -> tuple[np.ndarray, float]:
     """Census costs on the runs of a windowed SGM only (ragged uint8, see
-    :func:`stereocli.match.kernels.sgm_window.window_runs`), honouring ``right_valid``;
+    :func:`stereocli.matching.kernels.sgm_window.window_runs`), honouring ``right_valid``;
     returns ``(costs, cost_max)``."""
     left, right = _census_strings(state, p.window)
     support, cost_max = _census_support(state, p)

@@ -4,8 +4,8 @@ JIT runtime and loading each kernel from its cache (about 0.4 s of every ``stere
 and a first run after installing compiles nothing on that path.
 
 ``pip install .`` builds them into the installed package (``setup.py``; a failure there only
-leaves them out), ``python -m stereocli.match.kernels.aot`` into the source tree (for a
-checkout). :func:`find` hands :func:`stereocli.match.kernels._run` the compiled function for a
+leaves them out), ``python -m stereocli.matching.kernels.aot`` into the source tree (for a
+checkout). :func:`find` hands :func:`stereocli.matching.kernels._run` the compiled function for a
 kernel and the types of its arguments, or None: then the kernel runs from numba's JIT as
 before. The results are the same bit for bit (``tests/test_aot.py``).
 
@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 KERNELS_DIR = Path(__file__).resolve().parent
-#: Where ``pip install .`` and ``python -m stereocli.match.kernels.aot`` put the modules.
+#: Where ``pip install .`` and ``python -m stereocli.matching.kernels.aot`` put the modules.
 BUILD_DIR = KERNELS_DIR / "_aot"
 #: One line per compiled kernel: ``module.kernel<TAB>type, type, ...`` (numba's type names).
 SIGNATURES_FILE = KERNELS_DIR / "aot_signatures.txt"
@@ -233,7 +233,7 @@ def missing_build_advice() -> str:
     if _loaded_table() or os.environ.get("STEREOCLI_AOT", "1") == "0":
         return ""
     checkout = (KERNELS_DIR.parents[2] / "pyproject.toml").is_file()
-    fix = ("python -m stereocli.match.kernels.aot" if checkout else
+    fix = ("python -m stereocli.matching.kernels.aot" if checkout else
            "pip install --force-reinstall --no-deps <stereocli source> with a C compiler and a numba that has numba.pycc")
     return (f"the kernels were not compiled ahead of time ({_why_not[0]}); numba compiles them now, once "
             f"(later runs load them from its cache); to build them: {fix}")
@@ -395,12 +395,12 @@ def export_name(kernel: str, i: int) -> str:
 
 def _python_function(kernel: str):
     module, function = kernel.rsplit(".", 1)
-    value = getattr(importlib.import_module(f"stereocli.match.kernels.{module}"), function)
+    value = getattr(importlib.import_module(f"stereocli.matching.kernels.{module}"), function)
     return getattr(value, "py_func", value)
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m stereocli.match.kernels.aot [FOLDER]``: build into FOLDER (default: the package)."""
+    """``python -m stereocli.matching.kernels.aot [FOLDER]``: build into FOLDER (default: the package)."""
     argv = sys.argv[1:] if argv is None else argv
     folder = Path(argv[0]) if argv else BUILD_DIR
     print(f"compiling the usual presets' kernels ahead of time into {folder} ...")
