@@ -141,7 +141,7 @@ def on_one_and_two_threads(run):
 
     from stereocli.matching import kernels
 
-    old, old_chunks = numba.get_num_threads(), kernels._threads[0]
+    old, old_chunks = numba.get_num_threads(), kernels.get_threads()
     results = []
     try:
         for threads in (1, min(2, numba.config.NUMBA_NUM_THREADS)):

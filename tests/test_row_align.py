@@ -164,11 +164,11 @@ def test_middeval3_row_offsets(shared_data, scene, low, high, preset):
 def test_tracks_do_not_depend_on_the_thread_count():
     import cv2
 
-    from stereocli.matching.kernels import _threads, set_threads
+    from stereocli.matching.kernels import get_threads, set_threads
 
     scene = render(scene_surfaces("curved", W, H, seed=0), W, H, right_row_offset=0.3)
     runs = []
-    before = cv2.getNumThreads(), _threads[0]
+    before = cv2.getNumThreads(), get_threads()
     try:
         # OpenCV's threads, and the kernel threads that run the two views' preparation side by side.
         for threads in (1, 2):

@@ -35,6 +35,7 @@ volume refinements, and stitches them with the maps (two extra (H, W) float32 ma
 
 from __future__ import annotations
 
+import threading
 import time
 from dataclasses import dataclass, field, replace
 from typing import Callable
@@ -52,8 +53,9 @@ from .state import MatchState, Wants
 #: Use fused cost + WTA kernels when the pipeline allows it (False forces the volume path).
 FUSED = True
 
-#: The config of the pair being matched in this process, from :func:`prepare` to :func:`finish`.
-_current_config: list = [None]
+#: The config of the pair each thread is matching (thread id -> config), from :func:`prepare` to
+#: :func:`finish`: one thread's call never sees or clears another's.
+_current_config: dict[int, PipelineConfig] = {}
 
 GIB = 1024.0**3
 #: Interpreter, numpy/numba/OpenCV libraries and compiled kernels (measured RSS before matching).
@@ -229,7 +231,7 @@ def prepare(
     if ndisp < 1:
         raise DataError(f"ndisp must be at least 1 (got {ndisp})")
     _set_threads(config.runtime.threads)
-    _current_config[0] = config
+    _current_config[threading.get_ident()] = config
     shape = left.shape[:2]
     timings: dict[str, float] = {}
     refinements = _refinements(config, keep_invalid)
@@ -358,7 +360,7 @@ def finish(prepared: PreparedPair, results: list[StripResult], config: PipelineC
     if state.disparity_right is not None:
         # The right map was matched on ``state.right``, whose rows a preprocess stage may have moved.
         state.disparity_right = _right_map_rows(state, state.disparity_right, to_input=True)
-    _current_config[0] = None
+    _current_config.pop(threading.get_ident(), None)
     strips, overlap = prepared.strips, prepared.overlap
     return MatchResult(
         disparity=np.ascontiguousarray(state.disparity, dtype=np.float32),
@@ -402,14 +404,15 @@ def mirrored_disparity(prepared: PreparedPair, config: PipelineConfig, call) -> 
     notes = prepared.state.notes
     preprocess = [replace(c, params=c.stage.traits.mirrored_params(c.params, notes.get(c.stage.name)))
                   if c.stage.traits.mirrored_params else c for c in config.preprocess]
-    saved = _current_config[0]
+    saved = _current_config.get(threading.get_ident())
     try:
         result = match_pair(flip(right), flip(left), replace(config, preprocess=preprocess, refinement=before),
                             min_disp=prepared.state.min_disp, ndisp=prepared.state.ndisp,
                             left_valid=flip(right_valid), right_valid=flip(left_valid),
                             keep_invalid=prepared.keep_invalid)
     finally:
-        _current_config[0] = saved
+        if saved is not None:
+            _current_config[threading.get_ident()] = saved
     return np.ascontiguousarray(result.disparity[:, ::-1])
 
 
@@ -444,7 +447,7 @@ def match_pair(
     Parameters
     ----------
     left, right : (H, W) or (H, W, 3) arrays (uint8, uint16 or float32 in [0, 255]).
-    config : validated pipeline configuration (:func:`stereocli.config.build_config`).
+    config : validated pipeline configuration (:func:`stereocli.matching.config.build_config`).
     min_disp, ndisp : search range ``[min_disp, min_disp + ndisp)`` in pixels.
     left_valid, right_valid : optional (H, W) masks of pixels that may be matched (e.g.
         rectification borders are invalid); invalid left pixels come out +inf.
@@ -467,7 +470,7 @@ def match_pair(
         results = (strip_map or run_strips)(prepared, config)
         return finish(prepared, results, config)
     finally:
-        _current_config[0] = None
+        _current_config.pop(threading.get_ident(), None)
 
 
 def _strip_state(state: MatchState, a: int, b: int) -> MatchState:
@@ -577,9 +580,14 @@ def _timed(timings: dict, key: str, func, state: MatchState, params) -> None:
 
 
 def current_config() -> PipelineConfig | None:
-    """The config of the pair being matched in this process (between :func:`prepare` and the end
-    of :func:`finish`), else None: what the command line warms up when a kernel has to compile."""
-    return _current_config[0]
+    """The config of the pair the calling thread is matching (between :func:`prepare` and the end
+    of :func:`finish`), else that of a pair another thread is matching (a kernel helper thread
+    compiling for it), else None: what the command line warms up when a kernel has to compile."""
+    own = _current_config.get(threading.get_ident())
+    if own is not None:
+        return own
+    others = list(_current_config.values())
+    return others[-1] if others else None
 
 
 def _set_threads(threads: int) -> None:

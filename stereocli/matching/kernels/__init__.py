@@ -10,11 +10,14 @@ import itertools
 import os
 import sys
 import threading
+from contextlib import contextmanager
+from typing import Iterator
 
-from .compiling import LazyKernel, chunk_kernel, intrinsic, njit, numba_started, prange, prange_only, set_numba_threads
+from .compiling import (LazyKernel, chunk_kernel, get_numba_threads, intrinsic, njit, numba_started, prange,
+                        prange_only, set_numba_threads)
 
-__all__ = ["chunk_kernel", "for_chunks", "for_rows", "intrinsic", "kernel_threads", "njit", "prange", "prange_only",
-           "set_threads", "side_by_side"]
+__all__ = ["chunk_kernel", "for_chunks", "for_rows", "get_threads", "intrinsic", "kernel_threads", "njit", "prange",
+           "prange_only", "set_threads", "side_by_side", "threads_for_call"]
 
 
 # --- kernel threads -------------------------------------------------------------------------
@@ -24,22 +27,45 @@ __all__ = ["chunk_kernel", "for_chunks", "for_rows", "intrinsic", "kernel_thread
 # parallel compiler takes about three times as long to compile a kernel (the first run after
 # installing), and its thread team spins between regions on a shared machine.
 
-_threads = [0]  # 0: one per core
-_pool: list = [None, 0, 0]  # (executor, its size, the process it belongs to: a forked child makes its own)
+# The thread count is the calling thread's own setting: two threads matching at once with
+# different counts each run their kernels on theirs (the output never depends on it).
+_threads = threading.local()  # .count: this thread's setting (0, or unset: one per core)
+_pool: list = [None, 0]  # (executor, the process it belongs to: a forked child makes its own)
+_pool_lock = threading.Lock()
 
 
 def set_threads(threads: int) -> None:
-    """Threads of :func:`for_chunks` and of numba's ``prange`` kernels (0: one per core,
-    ``NUMBA_NUM_THREADS``); numba's count is set in the calling thread now if numba has started,
-    else when it starts."""
-    _threads[0] = max(0, int(threads))
-    set_numba_threads(_threads[0])
+    """Threads of the calling thread's kernel calls, :func:`for_chunks` and numba's ``prange``
+    kernels (0: one per core, ``NUMBA_NUM_THREADS``); other threads keep theirs. numba's count
+    is set in the calling thread now if numba has started, else when it starts."""
+    _threads.count = max(0, int(threads))
+    set_numba_threads(_threads.count)
+
+
+def get_threads() -> int:
+    """The calling thread's setting of :func:`set_threads` (0: one per core)."""
+    return getattr(_threads, "count", 0)
+
+
+@contextmanager
+def threads_for_call(threads: int) -> Iterator[None]:
+    """:func:`set_threads` for the calling thread while the ``with`` block runs, then its
+    earlier setting back (numba's count too, where numba had started)."""
+    before, numba_before = get_threads(), get_numba_threads()
+    set_threads(threads)
+    try:
+        yield
+    finally:
+        _threads.count = before
+        set_numba_threads(before, numba_before)
 
 
 def kernel_threads() -> int:
-    """The number of threads :func:`for_chunks` uses (at most numba's ``NUMBA_NUM_THREADS``)."""
+    """The number of threads :func:`for_chunks` uses in the calling thread (at most numba's
+    ``NUMBA_NUM_THREADS``)."""
     cap = max_threads()
-    return min(_threads[0], cap) if _threads[0] > 0 else cap
+    count = get_threads()
+    return min(count, cap) if count > 0 else cap
 
 
 def max_threads() -> int:
@@ -89,7 +115,7 @@ def _run(kernel, calls: list[tuple]) -> None:
         for call in calls:
             kernel(*call)
         return
-    pool = _helper_pool(threads)
+    pool = _helper_pool()
     # Every thread takes the next call from a shared counter (next() is atomic) until none is
     # left. The caller waits for the calls taken, not for the helpers: a small kernel's calls
     # may all be done before a helper wakes up (tens of microseconds), which then finds none.
@@ -118,17 +144,17 @@ def _run(kernel, calls: list[tuple]) -> None:
         raise progress["error"]
 
 
-def _helper_pool(threads: int):
-    """The kernel threads' executor: ``threads`` − 1 helpers beside the calling thread, one pool
-    for every call whatever its number of chunks (a call with fewer chunks than threads, SGM's
-    two stripes, just leaves some idle)."""
-    if _pool[0] is None or _pool[1] != threads - 1 or _pool[2] != os.getpid():
-        from concurrent.futures import ThreadPoolExecutor
+def _helper_pool():
+    """The kernel threads' executor: up to :func:`max_threads` − 1 helpers beside a calling
+    thread, one pool for every call whatever its thread count or number of chunks (a call asks
+    for as many helpers as it uses; calls from several threads share the helpers). Never shut
+    down while the process runs, so a call in one thread never loses the pool another started."""
+    with _pool_lock:
+        if _pool[0] is None or _pool[1] != os.getpid():
+            from concurrent.futures import ThreadPoolExecutor
 
-        if _pool[0] is not None and _pool[2] == os.getpid():
-            _pool[0].shutdown()
-        _pool[:] = ThreadPoolExecutor(threads - 1, thread_name_prefix="stereocli-kernel"), threads - 1, os.getpid()
-    return _pool[0]
+            _pool[:] = ThreadPoolExecutor(max(1, max_threads() - 1), thread_name_prefix="stereocli-kernel"), os.getpid()
+        return _pool[0]
 
 
 def side_by_side(first, second) -> tuple:
@@ -137,5 +163,5 @@ def side_by_side(first, second) -> tuple:
     threads = kernel_threads()
     if threads < 2:
         return first(), second()
-    later = _helper_pool(threads).submit(second)
+    later = _helper_pool().submit(second)
     return first(), later.result()

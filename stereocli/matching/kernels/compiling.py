@@ -17,7 +17,7 @@ import warnings
 # The expected note of numba's parallel pipeline on a :func:`chunk_kernel` (it has no prange).
 warnings.filterwarnings("ignore", message="(?s).*no transformation for parallel execution was possible")
 
-_numba_threads = [0]  # numba's thread count for its prange kernels (0: its default)
+_numba_threads = threading.local()  # .count: the calling thread's count for numba's prange kernels (0: its default)
 _start_lock = threading.Lock()
 
 
@@ -144,17 +144,29 @@ def start_numba() -> None:
         _lazy_objects.clear()
         globals()["prange"] = numba.prange  # for kernel modules imported from now on
         _numba_started[0] = True  # last: other threads use the dispatchers only once all are in place
-    set_numba_threads(_numba_threads[0])
+    set_numba_threads(getattr(_numba_threads, "count", 0))
 
 
-def set_numba_threads(threads: int) -> None:
-    """numba's thread count for its ``prange`` kernels (0: its default), set in the calling
-    thread now if numba has started, else when it starts."""
-    _numba_threads[0] = threads
-    if threads > 0 and _numba_started[0]:
+def set_numba_threads(threads: int, numba_threads: int | None = None) -> None:
+    """numba's thread count for the calling thread's ``prange`` kernels (0: its default,
+    ``NUMBA_NUM_THREADS``), set now if numba has started, else when it starts in this thread
+    (numba keeps the count per thread). ``numba_threads``: numba's own count to set instead
+    (what :func:`get_numba_threads` gave), to restore it."""
+    _numba_threads.count = threads
+    if _numba_started[0]:
         import numba
 
-        numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+        count = numba_threads or threads or numba.config.NUMBA_NUM_THREADS
+        numba.set_num_threads(min(count, numba.config.NUMBA_NUM_THREADS))
+
+
+def get_numba_threads() -> int | None:
+    """numba's thread count in the calling thread, None before numba has started."""
+    if not _numba_started[0]:
+        return None
+    import numba
+
+    return numba.get_num_threads()
 
 
 def numba_started() -> bool:
