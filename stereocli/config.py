@@ -214,8 +214,22 @@ def parse_set(assignment: str) -> tuple[list[str], Any]:
 def apply_set(config: dict, assignment: str) -> dict:
     """Apply one ``--set`` assignment; returns a new dict."""
     parts, value = parse_set(assignment)
+    return set_value(config, parts, value, f"--set {assignment}")
+
+
+def split_key(key: str, where: str) -> list[str]:
+    """``"section.key"`` (or ``"section.stage.key"``) as its parts; :class:`ConfigError` naming
+    ``where`` when it has fewer than two."""
+    parts = [p for p in str(key).strip().split(".") if p]
+    if len(parts) < 2:
+        raise ConfigError(f"{where}: expected section.key (e.g. cost.window)")
+    return parts
+
+
+def set_value(config: dict, parts: list[str], value: Any, where: str) -> dict:
+    """Set the key ``parts`` (``["optimizer", "p2"]``, ``["refinement", "lr_check", "max_diff"]``)
+    to ``value``, as ``--set`` does with a parsed value; returns a new dict. Errors name ``where``."""
     section = parts[0]
-    where = f"--set {assignment}"
     if section not in SECTIONS:
         raise ConfigError(f"{where}: unknown section {section!r}" + _suggest(section, list(SECTIONS)))
     out = copy.deepcopy(config)

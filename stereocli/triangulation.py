@@ -32,6 +32,10 @@ import numpy as np
 from .errors import DataError
 from .io.calib import UNIT_SCALE, StereoCalibration
 
+__all__ = ["FRAME", "PointCloud", "RectifiedGeometry", "depth_from_disparity", "geometry_from_calibration",
+           "geometry_from_q", "normals_from_depth", "points_from_depth", "reproject_q", "summarize", "triangulate",
+           "write_depth", "write_depth_png16_mm"]
+
 FRAME = "rectified left camera: x right, y down, z forward"
 
 

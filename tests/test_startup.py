@@ -22,6 +22,19 @@ def _python(code: str, **env) -> subprocess.CompletedProcess:
                           env=dict(os.environ, **env))
 
 
+def test_import_stereocli_loads_the_package_alone_and_the_functions_on_first_use():
+    # `import stereocli` stays light (benchmarks/startup.py times it): the public functions, and
+    # numpy, OpenCV and numba with them, load when first used; the command line's Click never.
+    loaded = "import sys\nprint(sorted(m for m in sys.modules if m.split('.')[0] in {})) "
+    heavy = "('stereocli', 'numpy', 'cv2', 'numba', 'yaml', 'click', 'typing')"
+    assert _python("import stereocli\n" + loaded.format(heavy)).stdout.split() == ["['stereocli']"]
+    used = _python("import stereocli\nstereocli.match\nstereocli.evaluate\n" + loaded.format("('numba', 'click')"))
+    assert used.stdout.split() == ["[]"], used.stderr
+    listed = _python("import stereocli\nprint(all(callable(getattr(stereocli, n)) for n in stereocli.__all__ "
+                     "if n != '__version__'))")
+    assert listed.stdout.split() == ["True"], listed.stderr
+
+
 def test_the_catalogue_names_every_stage_and_the_module_that_registers_it():
     registered = {(s.kind, s.name): s.func.__module__ for s in registry.stages()}
     declared = {(kind, name): module for module, kinds in stages.CATALOGUE.items()
@@ -189,10 +202,10 @@ def test_warmup_command_runs_every_task(run_cli):
 def test_the_warm_up_pair_takes_the_code_path_of_the_real_pair(monkeypatch, sets):
     # The tiny pair matched before a run's first pair must run the kernels that pair runs, or
     # the first pair's time.txt includes loading the others.
-    from stereocli.jobs.match import _tiny_match
     from stereocli.matching.config import build_config, small_twin
     from stereocli.matching.optimize import sgm as osgm
     from stereocli.matching.pipeline import match_pair
+    from stereocli.matching.warmup import tiny_match
 
     windowed = []
     real_windowed = osgm._run_windowed
@@ -202,8 +215,8 @@ def test_the_warm_up_pair_takes_the_code_path_of_the_real_pair(monkeypatch, sets
     match_pair(left, right, config, ndisp=64)
     real = bool(windowed)
     windowed.clear()
-    _tiny_match(small_twin(config, 160, 200, 64), channels=3, dtype=np.dtype(np.uint8), min_disp=0, ndisp=64,
-                masks=False)
+    tiny_match(small_twin(config, 160, 200, 64), channels=3, dtype=np.dtype(np.uint8), min_disp=0, ndisp=64,
+               masks=False)
     assert bool(windowed) == real
     assert real == (sets == ["optimizer.coarse_min_volume=1.0"])  # 160·200·64 = 2.0 M cells
 

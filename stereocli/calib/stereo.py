@@ -78,6 +78,17 @@ class View:
 
 @dataclass
 class CalibrationResult:
+    """What :func:`stereocli.calibrate` returns.
+
+    Attributes
+    ----------
+    calibration : the rig (K1, D1, K2, D2, R, T, rectified with R1, R2, P1, P2, Q), in the
+        square's unit; save it with :func:`stereocli.io.calib.save_calibration`.
+    report : images without the target and why, stereo / left / right and per-view RMS (px) with
+        outliers flagged, intrinsics, baseline, rotation, rectified epipolar error, warnings (the
+        ``OUT.report.json`` of ``stereocli calibrate``).
+    """
+
     calibration: StereoCalibration
     report: dict = field(default_factory=dict)
 

@@ -108,6 +108,20 @@ class SceneResult:
     mask_notes: dict[str, str] = field(default_factory=dict)
     arrays: dict[str, Any] = field(default_factory=dict, repr=False)
     left_image: Path | None = None
+    #: The options it was scored with and the GT's resolution (for :meth:`as_report`).
+    options: EvalOptions | None = field(default=None, repr=False)
+    resolution: str = "F"
+
+    def as_report(self) -> EvalReport:
+        """This scene alone as a report (what ``stereocli eval`` gives for one pair), e.g. for
+        :func:`~stereocli.evaluation.report.format_table`."""
+        options = self.options or EvalOptions()
+        failures = [{"name": self.name, "message": e, "partial": "true"} for e in self.errors]
+        report = EvalReport(scenes=[self], failures=failures,
+                            rules=rules_text([self.kind], options, [self.resolution]),
+                            thresholds=tuple(options.thresholds), quantiles=tuple(options.quantiles), mode="pair")
+        _add_mask_notes(report)
+        return report
 
     def as_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = {"name": self.name, "dataset": self.kind, "weight": self.weight}
@@ -126,7 +140,19 @@ class SceneResult:
 
 @dataclass
 class EvalReport:
-    """A scored batch: per-scene results, the weighted average, failures and the rules used."""
+    """A scored batch: per-scene results, the weighted average, failures and the rules used.
+
+    Attributes
+    ----------
+    scenes : one :class:`SceneResult` per scored scene; ``scenes[i].metrics[region][key]``
+        (regions ``nonocc``, ``all``; keys ``bad0.5`` ... ``bad4.0``, ``invalid``, ``avgerr``,
+        ``rms``, ``A50`` ... ``A99``, KITTI ``D1``, ``density``), in percent or px.
+    average : the (weighted) average of every metric per region.
+    failures : ``{"name", "message"}`` of scenes (or regions) that could not be scored.
+    rules : the rules applied, in words (every report's header).
+    thresholds : the bad-pixel thresholds, px.
+    to_dict : the report as ``stereocli eval --format json`` prints it.
+    """
 
     scenes: list[SceneResult]
     failures: list[dict[str, str]]
@@ -152,6 +178,13 @@ class EvalReport:
             return 1
         return 3 if self.failures else 0
 
+    def to_dict(self) -> dict[str, Any]:
+        """The report as ``stereocli eval --format json`` prints it (plain JSON types; a
+        non-finite number is None)."""
+        import json
+
+        return json.loads(json.dumps(json_ready(self.as_dict())))
+
     def as_dict(self) -> dict[str, Any]:
         return {
             "rules": self.rules,
@@ -161,6 +194,17 @@ class EvalReport:
             "failures": self.failures,
             "notes": self.notes,
         }
+
+
+def json_ready(obj: Any) -> Any:
+    """``obj`` with every non-finite float replaced by None (JSON has no inf or NaN)."""
+    if isinstance(obj, float) and not np.isfinite(obj):
+        return None
+    if isinstance(obj, dict):
+        return {k: json_ready(v) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [json_ready(v) for v in obj]
+    return obj
 
 
 def weighted_average(scenes: Sequence[SceneResult]) -> dict[str, Any]:
@@ -306,7 +350,8 @@ def evaluate_pair(
     h, w = est.shape
     result = SceneResult(name=name or scene.name, kind=scene.kind, weight=scene.weight, metrics=metrics,
                          size=(w, h), factor=factor, unit=unit, errors=list(scene.errors),
-                         notes=list(scene.notes), mask_notes=dict(scene.mask_notes), left_image=scene.left_image)
+                         notes=list(scene.notes), mask_notes=dict(scene.mask_notes), left_image=scene.left_image,
+                         options=options, resolution=scene.resolution)
     if time is not None:
         result.time = float(time)
         result.time_per_mp = time / (w * h / 1e6)
@@ -511,32 +556,60 @@ def evaluate(
         if ground_truth.is_file():
             raise ConfigError(f"{results} is a folder but {ground_truth} is a file; give a GT folder")
         return evaluate_folder(results, ground_truth, options=options, scorer=scorer)
-    # Pair mode.
+    # Pair mode: a folder of scenes gives the one named like the result (its folder or file stem).
+    name = pair_file.parent.name if pair_file.name.startswith("disp0") else pair_file.stem
+    scene = pair_scene(ground_truth, options, name=name, kitti_name=pair_file.stem, label=str(pair_file))
+    return evaluate_pair(pair_file, scene, options=options, time=ds.read_time(time_path)).as_report()
+
+
+def pair_scene(ground_truth: Path, options: EvalOptions, *, name: str | None, kitti_name: str | None = None,
+               label: str = "estimate") -> ds.Scene:
+    """The GT scene to score one estimate against: a GT file, a scene folder, the scene
+    ``kitti_name`` (default ``name``) of a KITTI root, or the scene ``name`` of a folder of
+    scenes (exact, then case-insensitive). ``label`` names the estimate in errors."""
     if ground_truth.is_file():
-        scene = ds.load_gt_file(ground_truth, dataset=options.dataset, gt_scale=options.gt_scale,
-                                resolution=options.scene_resolution())
-    elif ds.detect_layout(ground_truth) == "kitti" or options.dataset == "kitti":
-        scene = ds.load_kitti(ground_truth, pair_file.stem)
-    elif ds.detect_layout(ground_truth) is not None:
-        scene = ds.load_scene(ground_truth, dataset=options.dataset, gt_scale=options.gt_scale,
-                              resolution=options.scene_resolution())
-    else:
-        # A folder of scenes: pick the one named like the result (its folder or file stem).
-        entries = ds.find_gt_scenes(ground_truth, dataset=options.dataset)
-        name = pair_file.parent.name if pair_file.name.startswith("disp0") else pair_file.stem
-        match = [e for e in entries if e.name == name] or [e for e in entries if e.name.lower() == name.lower()]
-        if not match:
-            raise DataError(f"{pair_file}: no GT scene named {name!r} under {ground_truth}")
-        scene = ds.load_entry(match[0], gt_scale=options.gt_scale, resolution=options.scene_resolution())
-    result = evaluate_pair(pair_file, scene, options=options, time=ds.read_time(time_path))
-    failures = [{"name": result.name, "message": e, "partial": "true"} for e in result.errors]
-    report = EvalReport(scenes=[result], failures=failures,
-                        rules=rules_text([scene.kind], options, [scene.resolution]),
-                        thresholds=tuple(options.thresholds), quantiles=tuple(options.quantiles), mode="pair")
-    _add_mask_notes(report)
-    return report
+        return ds.load_gt_file(ground_truth, dataset=options.dataset, gt_scale=options.gt_scale,
+                               resolution=options.scene_resolution())
+    layout = ds.detect_layout(ground_truth)
+    if layout == "kitti" or options.dataset == "kitti":
+        if not (kitti_name or name):
+            raise DataError(f"{ground_truth}: a KITTI root holds many scenes; name the one to score")
+        return ds.load_kitti(ground_truth, kitti_name or name)
+    if layout is not None:
+        return ds.load_scene(ground_truth, dataset=options.dataset, gt_scale=options.gt_scale,
+                             resolution=options.scene_resolution())
+    entries = ds.find_gt_scenes(ground_truth, dataset=options.dataset)
+    if not name:
+        raise DataError(f"{ground_truth}: a folder of {len(entries)} scenes; name the one to score")
+    match = [e for e in entries if e.name == name] or [e for e in entries if e.name.lower() == name.lower()]
+    if not match:
+        raise DataError(f"{label}: no GT scene named {name!r} under {ground_truth}")
+    return ds.load_entry(match[0], gt_scale=options.gt_scale, resolution=options.scene_resolution())
+
+
+def pair_report(
+    estimate: np.ndarray | str | os.PathLike,
+    ground_truth: ds.Scene | str | os.PathLike,
+    *,
+    options: EvalOptions | None = None,
+    time: float | None = None,
+    name: str | None = None,
+) -> EvalReport:
+    """One estimate scored against one GT scene, as a report (``stereocli eval`` in pair mode).
+
+    ``ground_truth``: a loaded :class:`Scene`, or a path as :func:`pair_scene` takes it (with
+    ``name`` for a folder of scenes or a KITTI root); ``name`` also names the row.
+    """
+    options = options or EvalOptions()
+    if not isinstance(ground_truth, ds.Scene):
+        path = Path(ground_truth)
+        if not path.exists():
+            raise DataError(f"{path}: no such file or folder")
+        label = str(estimate) if isinstance(estimate, (str, os.PathLike)) else "estimate"
+        ground_truth = pair_scene(path, options, name=name, label=label)
+    return evaluate_pair(estimate, ground_truth, options=options, time=time, name=name).as_report()
 
 
 __all__ = ["EvalOptions", "SceneResult", "EvalReport", "FolderPlan", "SceneScorer", "SceneTask", "evaluate",
-           "evaluate_pair", "evaluate_folder", "folder_report", "plan_folder", "score_in_process", "score_scene",
-           "weighted_average", "rules_text", "threshold_key"]
+           "evaluate_pair", "evaluate_folder", "folder_report", "pair_report", "pair_scene", "plan_folder",
+           "score_in_process", "score_scene", "weighted_average", "rules_text", "threshold_key"]

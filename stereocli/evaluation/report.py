@@ -9,7 +9,7 @@ import math
 import textwrap
 from typing import Any
 
-from .api import EvalReport
+from .api import EvalReport, SceneResult, json_ready
 from .metrics import quantile_key, threshold_key
 
 FORMATS = ("text", "json", "csv", "markdown")
@@ -93,16 +93,7 @@ def _region_note(report: EvalReport, region: str) -> str:
 
 
 def format_json(report: EvalReport) -> str:
-    def clean(obj: Any) -> Any:
-        if isinstance(obj, float) and not math.isfinite(obj):
-            return None
-        if isinstance(obj, dict):
-            return {k: clean(v) for k, v in obj.items()}
-        if isinstance(obj, list):
-            return [clean(v) for v in obj]
-        return obj
-
-    return json.dumps(clean(report.as_dict()), indent=2) + "\n"
+    return json.dumps(json_ready(report.as_dict()), indent=2) + "\n"
 
 
 def format_csv(report: EvalReport) -> str:
@@ -149,8 +140,11 @@ def format_markdown(report: EvalReport) -> str:
     return "\n".join(lines) + "\n"
 
 
-def format_table(report: EvalReport, fmt: str = "text") -> str:
-    """Render ``report`` as ``text``, ``json``, ``csv`` or ``markdown``."""
+def format_table(report: EvalReport | SceneResult, fmt: str = "text") -> str:
+    """Render ``report`` as ``text``, ``json``, ``csv`` or ``markdown``; a single scene's
+    result (:func:`~stereocli.evaluation.api.evaluate_pair`) renders as its pair report."""
+    if isinstance(report, SceneResult):
+        report = report.as_report()
     if fmt == "text":
         return format_text(report)
     if fmt == "json":

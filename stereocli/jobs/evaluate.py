@@ -11,9 +11,9 @@ from __future__ import annotations
 import os
 from typing import Any, Sequence
 
+from ..api import evaluate as evaluate_inputs
 from ..errors import Interrupted
 from ..evaluation.api import EvalOptions, EvalReport, SceneScorer, SceneTask, score_scene
-from ..evaluation.api import evaluate as evaluate_inputs
 from .executors import run_batch
 from .items import WorkItem
 
@@ -68,7 +68,7 @@ def evaluate(
     progress: bool | None = None,
     verbose_errors: bool = False,
 ) -> EvalReport:
-    """:func:`stereocli.evaluation.evaluate` with folder-mode scenes on an executor.
+    """:func:`stereocli.evaluate` with folder-mode scenes on an executor.
 
     ``jobs``, ``scheduler``, ``retries``, ``executor``, ``progress``: as in
     :func:`~stereocli.jobs.executors.run_batch` (in-process by default; ``jobs > 1`` a process

@@ -8,14 +8,16 @@ naming the file and the key, with the valid choices and close matches.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
+import os
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Mapping, Sequence
 
 import yaml
 
 from .. import registry
-from ..config import apply_set, load_yaml, merge_layer, preset_dir, resolve_config_path
+from ..config import apply_set, load_yaml, merge_layer, preset_dir, resolve_config_path, set_value, split_key
 from ..errors import ConfigError
 from ..registry import Stage, param
 from . import stages as _stages  # noqa: F401  (registers every built-in stage)
@@ -111,24 +113,37 @@ def validate(config: dict, source: str = "<config>") -> PipelineConfig:
     return PipelineConfig(pre, cost, agg, opt, ref, runtime)
 
 
-def build_config(config_files: list[str] | tuple[str, ...] = (), sets: list[str] | tuple[str, ...] = ()) -> PipelineConfig:
-    """Defaults < each ``--config`` file in order < each ``--set``; validated.
+def build_config(config_files: Sequence[str | os.PathLike | Mapping] = (), sets: Sequence[str] = (), *,
+                 values: Mapping[str, Any] | None = None) -> PipelineConfig:
+    """Defaults < each ``--config`` file in order < each ``--set`` < each of ``values``; validated.
 
-    Errors name the layer they come from (the file, or the ``--set`` assignment).
+    ``config_files``: preset names (``fast``) or YAML paths, or mappings laid over like a file's
+    contents; ``sets``: ``section.key=value`` assignments (the value is YAML); ``values``:
+    ``{"section.key": value}`` with Python values (``{"optimizer.p2": 1.2}``). Errors name the
+    layer they come from (the file, or the ``--set`` assignment).
     """
     default_path = preset_dir() / "default.yaml"
     merged = merge_layer({}, load_yaml(default_path), str(default_path))
     sources = [str(default_path)]
-    for name in config_files:
-        path = resolve_config_path(name)
-        merged = merge_layer(merged, load_yaml(path), str(path))
-        sources.append(str(path))
+    for layer in config_files:
+        if isinstance(layer, Mapping):
+            source, contents = "<mapping>", dict(layer)
+        else:
+            path = resolve_config_path(str(layer))
+            source, contents = str(path), load_yaml(path)
+        merged = merge_layer(merged, contents, source)
+        sources.append(source)
         # Validate after each file so an error names the file that introduced it.
-        validate(merged, str(path))
+        validate(merged, source)
     for assignment in sets:
         merged = apply_set(merged, assignment)
         validate(merged, f"--set {assignment}")
         sources.append(f"--set {assignment}")
+    for key, value in (values or {}).items():
+        where = f"set {key}={value!r}"
+        merged = set_value(merged, split_key(key, where), copy.deepcopy(value), where)
+        validate(merged, where)
+        sources.append(where)
     result = validate(merged, sources[-1])
     result.sources = sources
     return result

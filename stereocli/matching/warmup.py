@@ -33,6 +33,7 @@ import json
 import os
 import subprocess
 import sys
+import threading
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -190,6 +191,48 @@ def warm_up_first_run(config: PipelineConfig | None) -> None:
     try:
         warm_up({"run": config}, jobs=min(cores, 2))
     except Exception:  # noqa: BLE001 - only a warm-up: the run compiles what it lacks itself
+        pass
+
+
+def tiny_match(config: PipelineConfig, *, channels: int, dtype: np.dtype, min_disp: int, ndisp: int, masks: bool,
+               **flags):
+    """:func:`~stereocli.matching.pipeline.match_pair` on a small random pair of this kind
+    (channels, dtype, valid masks, wanted outputs) with at most 32 disparities."""
+    from .pipeline import match_pair
+
+    nd = max(1, min(int(ndisp), 32))
+    h, w = 48, nd + 64
+    info = np.iinfo(dtype) if np.issubdtype(dtype, np.integer) else None
+    high = info.max if info else 255
+    shape = (h, w, channels) if channels > 1 else (h, w)
+    left = np.random.default_rng(0).integers(0, high, shape, endpoint=True).astype(dtype)
+    right = np.roll(left, -max(0, min_disp) - nd // 2, axis=1)
+    valid = np.ones((h, w), bool) if masks else None
+    return match_pair(left, right, config, min_disp=int(min_disp), ndisp=nd, left_valid=valid, right_valid=valid,
+                      **flags)
+
+
+_WARMED: set = set()
+_WARMED_LOCK = threading.Lock()
+
+
+def warm_up_pair(config: PipelineConfig, left: np.ndarray, *, min_disp: int, ndisp: int, masks: bool,
+                 **flags) -> None:
+    """Once per process and kind of call, match a tiny pair first, so that the time of the first
+    real pair (``time.txt``) holds matching, not loading (or compiling) the kernels. The tiny
+    pair takes the code path of the real one (:func:`~stereocli.matching.config.small_twin`)."""
+    from .config import small_twin
+
+    twin = small_twin(config, left.shape[0], left.shape[1], ndisp)
+    key = (repr(twin.as_dict()), left.ndim, left.dtype.str, masks, tuple(sorted(flags.items())))
+    with _WARMED_LOCK:
+        if key in _WARMED:
+            return
+        _WARMED.add(key)
+    try:
+        tiny_match(twin, channels=left.shape[2] if left.ndim == 3 else 1, dtype=left.dtype,
+                   min_disp=min_disp, ndisp=ndisp, masks=masks, **flags)
+    except Exception:  # noqa: BLE001 - only a warm-up: the real pair reports its own errors
         pass
 
 

@@ -623,6 +623,17 @@ def warp_pair(left: np.ndarray, right: np.ndarray, rect: UncalibratedRectificati
     return out[0][0], out[1][0], out[0][1], out[1][1]
 
 
+def uncalibrated_calib_txt(rect: UncalibratedRectification, ndisp: int, min_disp: int, max_disp: int):
+    """The Middlebury calib.txt of an uncalibrated rectification ``rect``: the rectified views'
+    virtual cameras (``doffs`` = where infinity would be if their focal length were right), the
+    size and the disparity range; no baseline (0), and ``rectification=uncalibrated`` says why."""
+    from ..io.middlebury import MiddleburyCalib
+
+    return MiddleburyCalib(cam0=rect.camera0, cam1=rect.camera1, doffs=float(rect.camera1[0, 2] - rect.camera0[0, 2]),
+                           baseline=0.0, width=int(rect.size[0]), height=int(rect.size[1]), ndisp=int(ndisp), isint=0,
+                           vmin=float(min_disp), vmax=float(max_disp), extra={"rectification": "uncalibrated"})
+
+
 def warp_distortion(H: np.ndarray, size: tuple[int, int]) -> dict[str, float]:
     """How much ``H`` distorts an image of ``size`` (w, h) (Mallon & Whelan, 2005).
 
