@@ -787,7 +787,8 @@ def rectify(
     for what, image in (("left", left), ("right", right)):
         if image.shape[:2] != (h, w):
             raise DataError(f"{what} image is {image.shape[1]}x{image.shape[0]} but the calibration is for {w}x{h}")
-    maps = maps if maps is not None else build_maps(calib, alpha=alpha, size=tuple(size) if size else None)
+    maps = maps if maps is not None else build_maps(calib, alpha=alpha,
+                                                        size=(int(size[0]), int(size[1])) if size else None)
     if maps.rect.vertical:
         raise DataError(f"{label}: vertical rig; stereocli rectifies horizontal pairs only")
     r0, r1 = rectify_images(left, right, maps, interpolation=interpolation)
@@ -810,8 +811,8 @@ def _rectify_uncalibrated(left: np.ndarray, right: np.ndarray, rect: Uncalibrate
     if rect is None:
         estimate = estimate_rectification([(left, right)])
         pair = estimate.pairs[0]
-        if pair.error:
-            raise DataError(pair.error)
+        if pair.error or pair.min_disp is None or pair.max_disp is None:
+            raise DataError(pair.error or "no disparity range")
         rect, disparity_range = estimate.rectification, (pair.min_disp, pair.max_disp)
     r0, r1, valid0, valid1 = warp_pair(left, right, rect, interpolation=interpolation)
     source = "given" if disparity_range is not None and pair is None else "estimated"
@@ -1025,12 +1026,15 @@ def evaluate(
     >>> bad["bad0.5"], bad["bad2.0"]
     (100.0, 0.0)
     """
-    from .evaluation.api import EvalOptions, evaluate as evaluate_inputs, pair_report
+    from .evaluation.api import EvalOptions, pair_report
+    from .evaluation.api import evaluate as evaluate_inputs
+    from .evaluation.datasets import Scene
 
     if options is None:
         options = EvalOptions(thresholds=tuple(thresholds) if thresholds else EvalOptions.thresholds,
                               resolution=resolution, threshold_units=threshold_units, same_resolution=same_resolution,
                               ndisp=ndisp, dataset=dataset, gt_scale=gt_scale, keep_arrays=keep_arrays)
-    if isinstance(disparity, (str, os.PathLike)) and time is None and name is None:
+    if isinstance(disparity, (str, os.PathLike)) and not isinstance(ground_truth, Scene) and time is None \
+            and name is None:  # what `stereocli eval` does with paths: a file, or folder mode
         return evaluate_inputs(disparity, ground_truth, options=options, scorer=scorer)
     return pair_report(disparity, ground_truth, options=options, time=time, name=name)

@@ -22,7 +22,7 @@ from conftest import REPO, SAMPLES
 import stereocli
 from stereocli import api
 from stereocli.errors import ConfigError, DataError
-from stereocli.io.images import read_disparity, write_image
+from stereocli.io.images import write_image
 from stereocli.io.pfm import read_pfm, write_pfm
 from stereocli.matching.config import build_config
 
@@ -307,6 +307,31 @@ def test_rectify_equals_the_command_line(tmp_path, run_cli):
     np.testing.assert_array_equal(result.right, stereocli.read_image(out / "im1.png"))
     np.testing.assert_array_equal(result.left_valid, stereocli.read_image(out / "valid0.png") > 0)
     assert format_calib_txt(result.calib_txt) == (out / "calib.txt").read_text()
+
+
+def test_rectify_without_a_calibration_equals_the_command_line(tmp_path, run_cli):
+    import cv2
+
+    from stereocli.io.middlebury import format_calib_txt
+    from stereocli.rectification.uncalibrated import UncalibratedRectification
+
+    turned = np.array([[1.0, -0.017, 2.0], [0.017, 1.0, 4.0], [0.0, 0.0, 1.0]])  # right view turned 1 deg, lowered
+    left = stereocli.read_image(PLANES / "im0.png")
+    right = cv2.warpPerspective(stereocli.read_image(PLANES / "im1.png"), turned, (320, 240))
+    for name, image in (("left", left), ("right", right)):
+        write_image(tmp_path / "pair" / name / "p.png", image)
+    r = run_cli("rectify", tmp_path / "pair", "--uncalibrated", "-o", tmp_path / "rect")
+    assert r.code == 0, r.err
+    out = tmp_path / "rect" / "p"
+    result = stereocli.rectify(left, right)
+    np.testing.assert_array_equal(result.left, stereocli.read_image(out / "im0.png"))
+    np.testing.assert_array_equal(result.right, stereocli.read_image(out / "im1.png"))
+    assert format_calib_txt(result.calib_txt) == (out / "calib.txt").read_text()
+    assert isinstance(result.rectification, UncalibratedRectification) and result.range["source"] == "estimated"
+    again = stereocli.rectify(left, right, result.rectification, disparity_range=(result.range["min_disp"],
+                                                                                  result.range["max_disp"]))
+    np.testing.assert_array_equal(again.right, result.right)
+    assert again.ndisp == result.ndisp and again.range["source"] == "given"
 
 
 def test_calibrate_takes_a_folder_or_pairs_of_paths_or_arrays(tmp_path, run_cli):

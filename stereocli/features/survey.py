@@ -52,7 +52,7 @@ def survey_pair(left: np.ndarray, right: np.ndarray, *, min_disp: int | None, nd
     from .points import match_points
 
     t0 = time.perf_counter()
-    span = {"min_disp": min_disp, "ndisp": ndisp, "source": source}
+    span: dict = {"min_disp": min_disp, "ndisp": ndisp, "source": source}
     if ndisp is not None and not measure_rows:
         return {"range": span, "alignment": None, "warnings": [], "survey_seconds": 0.0}
     matches = match_points(left, right, left_valid=left_valid, right_valid=right_valid)
