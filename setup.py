@@ -1,5 +1,5 @@
 """Build step of ``pip install``: the numba kernels of the ladder's presets (default, fast, accurate,
-realtime, quality) compiled ahead of time into the package (``stereocli/match/kernels/aot.py``), so that
+realtime, quality) compiled ahead of time into the package (``stereocli/matching/kernels/aot.py``), so that
 a ``stereocli`` process loads them as extension modules instead of starting numba's JIT, and
 the first run of those presets compiles nothing. The project's metadata is in
 ``pyproject.toml``.
@@ -27,7 +27,7 @@ from setuptools.command.bdist_wheel import bdist_wheel
 from setuptools.command.build_py import build_py
 from setuptools.dist import Distribution
 
-KERNELS = Path("stereocli", "match", "kernels")
+KERNELS = Path("stereocli", "matching", "kernels")
 FAILED_NOTE = "BUILD_FAILED.txt"
 
 
@@ -46,7 +46,7 @@ class BuildWithKernels(build_py):
             return
         sys.path.insert(0, str(root))  # import stereocli from where it is being built
         try:
-            from stereocli.match.kernels import aot
+            from stereocli.matching.kernels import aot
 
             self.distribution.kernels_built = _build_or_reuse(aot, root / KERNELS / "_aot")
         except Exception as exc:  # noqa: BLE001 - the install goes on; the kernels compile on first use

@@ -25,9 +25,9 @@ import accuracy  # benchmarks/accuracy.py: scenes, scoring rules; puts the check
 import yaml
 
 from stereocli.config import load_yaml, resolve_config_path
-from stereocli.evaluate.api import weighted_average
-from stereocli.match.config import build_config
-from stereocli.match.pipeline import match_pair
+from stereocli.evaluation.api import weighted_average
+from stereocli.matching.config import build_config
+from stereocli.matching.pipeline import match_pair
 
 #: What replaces a stage in its "without" variant (``None``: nothing).
 REPLACEMENTS = {"interpolate": {"name": "fill"}}

@@ -53,12 +53,12 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from stereocli.config import preset_names  # noqa: E402
-from stereocli.match.config import build_config  # noqa: E402
-from stereocli.evaluate.api import EvalOptions, evaluate_pair, weighted_average  # noqa: E402
-from stereocli.evaluate.datasets import load_scene  # noqa: E402
+from stereocli.matching.config import build_config  # noqa: E402
+from stereocli.evaluation.api import EvalOptions, evaluate_pair, weighted_average  # noqa: E402
+from stereocli.evaluation.datasets import load_scene  # noqa: E402
 from stereocli.io.images import read_image  # noqa: E402
-from stereocli.match.kernels import set_threads as set_kernel_threads  # noqa: E402
-from stereocli.match.pipeline import match_pair  # noqa: E402
+from stereocli.matching.kernels import set_threads as set_kernel_threads  # noqa: E402
+from stereocli.matching.pipeline import match_pair  # noqa: E402
 from stereocli.process import keep_freed_memory, prepare_kernels  # noqa: E402
 
 sys.path.insert(0, str(REPO / "benchmarks"))
@@ -96,7 +96,7 @@ class Scene:
     left: np.ndarray
     right: np.ndarray
     ndisp: int
-    truth: object = None  # the loaded ground truth (stereocli.evaluate.datasets.Scene), validation scenes
+    truth: object = None  # the loaded ground truth (stereocli.evaluation.datasets.Scene), validation scenes
 
 
 def ndisp_from_truth(gt: np.ndarray) -> int:

@@ -34,7 +34,7 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 from accuracy import DEFAULT_DATA, load_scenes, score  # noqa: E402
 
 from stereocli.io.pfm import read_pfm  # noqa: E402
-from stereocli.evaluate.datasets import load_scene  # noqa: E402
+from stereocli.evaluation.datasets import load_scene  # noqa: E402
 
 
 def lay_out(scenes, root: Path) -> tuple[Path, Path]:

@@ -32,9 +32,9 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "benchmarks"))
 
 from accuracy import DEFAULT_DATA, load_scenes  # noqa: E402
-from stereocli.evaluate.datasets import load_scene  # noqa: E402
-from stereocli.match.config import build_config  # noqa: E402
-from stereocli.match.pipeline import match_pair  # noqa: E402
+from stereocli.evaluation.datasets import load_scene  # noqa: E402
+from stereocli.matching.config import build_config  # noqa: E402
+from stereocli.matching.pipeline import match_pair  # noqa: E402
 from stereocli.process import prepare_kernels  # noqa: E402
 
 prepare_kernels()

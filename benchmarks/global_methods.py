@@ -6,7 +6,7 @@ bad-pixel rates (non-occluded, error > 1 px, dense output), wall time and throug
 (MDE/s = W·H·D / seconds / 10⁶).
 
 Masks are *derived* from the GT (z-buffer visibility, plus the right-view GT for Teddy and
-Cones; see ``stereocli.evaluate.metrics.derive_nonocc_mask``), not the official v2 masks,
+Cones; see ``stereocli.evaluation.metrics.derive_nonocc_mask``), not the official v2 masks,
 so numbers are close to but not identical with the published tables.
 
 Usage::
@@ -31,10 +31,10 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from stereocli.match.config import build_config  # noqa: E402
-from stereocli.evaluate.metrics import derive_nonocc_mask, middlebury_stats  # noqa: E402
-from stereocli.match.kernels.maps import fill_background  # noqa: E402
-from stereocli.match.pipeline import match_pair  # noqa: E402
+from stereocli.matching.config import build_config  # noqa: E402
+from stereocli.evaluation.metrics import derive_nonocc_mask, middlebury_stats  # noqa: E402
+from stereocli.matching.kernels.maps import fill_background  # noqa: E402
+from stereocli.matching.pipeline import match_pair  # noqa: E402
 from stereocli.process import keep_freed_memory, prepare_kernels  # noqa: E402
 
 keep_freed_memory()  # as the command line does: freed buffers stay in the process between pairs

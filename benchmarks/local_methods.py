@@ -6,11 +6,11 @@ WTA winners, exact agreement, as Rhemann et al. 2011 / Hosni et al. 2013) → ho
 filling (region voting, then 16-direction proper interpolation: the ADCensus outlier handling of
 Mei et al. 2011) → median 3×3 → ``plane_smooth`` (gated, colour-weighted line fits: a second
 sub-pixel step that removes the pixel locking of the parabola fit), dense output, through
-:func:`stereocli.match.pipeline.match_pair`, and is scored with bad > 1.0 px over non-occluded
+:func:`stereocli.matching.pipeline.match_pair`, and is scored with bad > 1.0 px over non-occluded
 pixels. One chain (:data:`REFINEMENT`) for every method and scene. The official v2 region
 masks are not in ``../shared/data``: the nonocc masks are *derived* from the GT (z-buffer
 visibility, cross-checked with ``disp6`` for Teddy/Cones;
-``stereocli.evaluate.datasets.load_middlebury_v2``), so numbers are close to, not identical
+``stereocli.evaluation.datasets.load_middlebury_v2``), so numbers are close to, not identical
 with, the published v2 table. ``guided_filter`` runs with ``right_view: guided`` (the
 right-view map for the LR check is filtered with the right image as guide, as in
 Rhemann/Hosni et al.); the other aggregations are symmetric in the two views or read the right
@@ -38,11 +38,11 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from stereocli.match.config import validate  # noqa: E402
-from stereocli.evaluate.datasets import load_middlebury_v2  # noqa: E402
-from stereocli.evaluate.metrics import middlebury_stats  # noqa: E402
+from stereocli.matching.config import validate  # noqa: E402
+from stereocli.evaluation.datasets import load_middlebury_v2  # noqa: E402
+from stereocli.evaluation.metrics import middlebury_stats  # noqa: E402
 from stereocli.io.images import read_image  # noqa: E402
-from stereocli.match.pipeline import match_pair  # noqa: E402
+from stereocli.matching.pipeline import match_pair  # noqa: E402
 from stereocli.process import keep_freed_memory, prepare_kernels  # noqa: E402
 
 keep_freed_memory()  # as the command line does: freed buffers stay in the process between pairs

@@ -28,10 +28,10 @@ def child(args: argparse.Namespace) -> None:
     sys.path.insert(0, str(REPO))
     import cv2
 
-    from stereocli.match.config import build_config
+    from stereocli.matching.config import build_config
     from stereocli.io.images import read_image
     from stereocli.io.middlebury import read_calib_txt
-    from stereocli.match.pipeline import match_pair
+    from stereocli.matching.pipeline import match_pair
     from stereocli.process import keep_freed_memory
 
     keep_freed_memory()  # as the command line does

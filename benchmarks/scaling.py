@@ -57,7 +57,7 @@ def make_pairs(root: Path, n: int, size: tuple[int, int], distinct: int = 4) -> 
 def plan(data: Path, out: Path, config_args: list[str], sets: list[str], ndisp: int | None = None, **opts):
     from stereocli.io.pairs import discover_pairs
     from stereocli.jobs.match import plan_items
-    from stereocli.match.config import build_config
+    from stereocli.matching.config import build_config
 
     pairs, _ = discover_pairs([str(data)])
     items = plan_items(pairs, out, config=build_config(config_args, sets).as_dict(), ndisp=ndisp, min_disp=None)

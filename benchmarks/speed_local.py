@@ -3,14 +3,14 @@
 
 All methods run on the same pair (Middlebury 2003 Teddy, 450×375, D = 64 by default) in the
 same process, with OpenCV StereoBM measured in the same run as the yardstick (``ratio`` =
-throughput / StereoBM's). Each method runs through :func:`stereocli.match.pipeline.match_pair`
+throughput / StereoBM's). Each method runs through :func:`stereocli.matching.pipeline.match_pair`
 as ``[preprocess] → cost → [aggregation] → WTA`` (no refinement unless the row says so) on
 the colour pair, except rows marked "grey" (the grey pair StereoBM also gets), once
 to warm up (numba compilation, caches), then the best of ``--repeat`` runs is kept.
 MDE/s = W·H·D / seconds / 10⁶.
 
 SAD/STAD + WTA pipelines (and the realtime preset) run the fused cost + WTA kernel, which
-never stores the cost volume (:func:`stereocli.match.pipeline.fused_cost_wta`); the rows
+never stores the cost volume (:func:`stereocli.matching.pipeline.fused_cost_wta`); the rows
 marked "volume path" run the same pipeline with the fusion switched off, for comparison.
 
     python benchmarks/speed_local.py --threads 2
@@ -29,10 +29,10 @@ import cv2
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from stereocli.match.config import build_config, validate  # noqa: E402
+from stereocli.matching.config import build_config, validate  # noqa: E402
 from stereocli.io.images import read_image  # noqa: E402
-from stereocli.match import pipeline  # noqa: E402
-from stereocli.match.pipeline import match_pair  # noqa: E402
+from stereocli.matching import pipeline  # noqa: E402
+from stereocli.matching.pipeline import match_pair  # noqa: E402
 from stereocli.process import keep_freed_memory, prepare_kernels  # noqa: E402
 
 keep_freed_memory()  # as the command line does: freed buffers stay in the process between pairs

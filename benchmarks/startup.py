@@ -6,10 +6,12 @@ StereoSGBM 3WAY (the parameters of ``accuracy.py``) over the same disparity rang
 the PFM (little endian, bottom row first). Cases:
 
 * ``pair``: one 640×480 pair (the centre of MiddEval3-Q Adirondack, 64 disparities);
-* ``folder``: the 15 MiddEval3-Q scenes (ranges from each ``calib.txt``) in one process.
+* ``folder``: the 15 MiddEval3-Q scenes (ranges from each ``calib.txt``) in one process;
+* ``import``: ``import stereocli`` in Python (the public functions load on first use), and the
+  first use of ``stereocli.match``, over a bare interpreter's start (no data needed).
 
 stereocli runs with its kernels compiled ahead of time (``pip install .``; in a checkout,
-``python -m stereocli.match.kernels.aot``) and, as a third process, without them
+``python -m stereocli.matching.kernels.aot``) and, as a third process, without them
 (``STEREOCLI_AOT=0``: every kernel from numba's cache).
 
 The processes take turns (A, B, C, A, B, C, ...) for ``--repeat`` rounds with warm numba caches
@@ -165,20 +167,40 @@ def first_run(root: Path, left: Path, right: Path) -> None:
             print(f"  stderr: {line}")
 
 
+def import_cost(repeat: int) -> None:
+    """Best wall time of ``import stereocli`` (and of reaching ``stereocli.match``) in a fresh
+    interpreter, over that of a bare interpreter, from outside the checkout's working folder."""
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    runs = {"bare": "pass", "import stereocli": "import stereocli",
+            "then stereocli.match": "import stereocli; stereocli.match"}
+    best = {}
+    for name, code in runs.items():
+        argv = [sys.executable, "-c", code]
+        wall(argv, env)
+        best[name] = min(wall(argv, env)[0] for _ in range(max(1, repeat)))
+    for name in ("import stereocli", "then stereocli.match"):
+        print(f"{name:20} {1000 * (best[name] - best['bare']):7.1f} ms over a bare interpreter")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--cases", default="pair,folder", help="comma-separated: pair, folder")
+    ap.add_argument("--cases", default="import,pair,folder", help="comma-separated: import, pair, folder")
     ap.add_argument("--repeat", type=int, default=5, help="rounds of alternating runs")
     ap.add_argument("--first-run", action="store_true", help="also time a match with an empty numba cache")
     ap.add_argument("--command", default="", help="how to run stereocli (default: the console script beside this Python)")
     args = ap.parse_args()
     COMMAND[:] = args.command.split()
+    wanted = [c.strip() for c in args.cases.split(",") if c.strip()]
+    if "import" in wanted:
+        import_cost(args.repeat)
+        wanted.remove("import")
+        if not wanted:
+            return
     if not (DATA / "Adirondack").is_dir():
         print(f"skipped: {DATA} not found")
         return
     root = Path(tempfile.mkdtemp(prefix="stereocli-startup-"))
     try:
-        wanted = [c.strip() for c in args.cases.split(",") if c.strip()]
         print(f"{'case':8} {'process':10} {'best s':>8} {'median s':>9} {'× OpenCV (best)':>16} {'(median)':>9}")
         for case, (cli, cv) in cases(root, wanted).items():
             t = in_turns({"stereocli": (cli, None), "opencv": (cv, None),

@@ -1,5 +1,17 @@
 """stereocli: stereo vision on image folders (calibrate, rectify, match, triangulate, eval).
 
+In Python, the five subcommands are five functions (loaded on first use, so ``import
+stereocli`` stays light)::
+
+    import stereocli
+    left = stereocli.read_image("im0.png")      # RGB
+    right = stereocli.read_image("im1.png")
+    result = stereocli.match(left, right)       # range estimated, as `stereocli match` does
+    result.disparity                            # (H, W) float32 px, +inf invalid
+
+:func:`calibrate`, :func:`rectify`, :func:`match`, :func:`triangulate`, :func:`evaluate` and
+:func:`read_image` live in :mod:`stereocli.api`.
+
 Conventions used everywhere in the package:
 
 * Images are ``numpy.ndarray`` of shape ``(H, W)`` or ``(H, W, 3)`` (RGB order), float32 in
@@ -11,4 +23,40 @@ Conventions used everywhere in the package:
   cost stage's maximum cost.
 """
 
+from __future__ import annotations
+
 __version__ = "0.1.0"
+
+#: Public name -> the module that defines it (imported when the name is first used).
+_LAZY = {
+    "calibrate": "stereocli.api", "rectify": "stereocli.api", "match": "stereocli.api",
+    "triangulate": "stereocli.api", "evaluate": "stereocli.api", "read_image": "stereocli.api",
+    "MatchResult": "stereocli.api", "MatchRange": "stereocli.api", "RectifyResult": "stereocli.api",
+    "TriangulationResult": "stereocli.api", "CalibrationResult": "stereocli.calib.stereo",
+    "EvalReport": "stereocli.evaluation.api",
+}
+
+__all__ = ["CalibrationResult", "EvalReport", "MatchRange", "MatchResult", "RectifyResult", "TriangulationResult",
+           "__version__", "calibrate", "evaluate", "match", "read_image", "rectify", "triangulate"]
+
+TYPE_CHECKING = False  # (typing.TYPE_CHECKING without importing typing: type checkers read it as True)
+if TYPE_CHECKING:
+    from .api import (MatchRange, MatchResult, RectifyResult, TriangulationResult, calibrate, evaluate, match,
+                      read_image, rectify, triangulate)
+    from .calib.stereo import CalibrationResult
+    from .evaluation.api import EvalReport
+
+
+def __getattr__(name: str) -> object:
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'stereocli' has no attribute {name!r}")
+    import importlib
+
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value  # later lookups skip this function
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

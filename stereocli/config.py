@@ -13,7 +13,7 @@ Precedence: the ``default`` preset < ``--config FILE`` < ``--set section.key=val
 higher layer names a different stage for a section, the lower layer's parameters for that
 section are dropped (they belonged to the other stage). Lists (``refinement``) are replaced
 whole; ``--set refinement.lr_check.max_diff=2`` edits the listed stage of that name.
-This module works on plain dicts; :mod:`stereocli.match.config` resolves the stages and
+This module works on plain dicts; :mod:`stereocli.matching.config` resolves the stages and
 validates their parameters.
 """
 
@@ -257,8 +257,22 @@ def parse_set(assignment: str) -> tuple[list[str], Any]:
 def apply_set(config: dict, assignment: str) -> dict:
     """Apply one ``--set`` assignment; returns a new dict."""
     parts, value = parse_set(assignment)
+    return set_value(config, parts, value, f"--set {excerpt(assignment)}")
+
+
+def split_key(key: str, where: str) -> list[str]:
+    """``"section.key"`` (or ``"section.stage.key"``) as its parts; :class:`ConfigError` naming
+    ``where`` when it has fewer than two."""
+    parts = [p for p in str(key).strip().split(".") if p]
+    if len(parts) < 2:
+        raise ConfigError(f"{where}: expected section.key (e.g. cost.window)")
+    return parts
+
+
+def set_value(config: dict, parts: list[str], value: Any, where: str) -> dict:
+    """Set the key ``parts`` (``["optimizer", "p2"]``, ``["refinement", "lr_check", "max_diff"]``)
+    to ``value``, as ``--set`` does with a parsed value; returns a new dict. Errors name ``where``."""
     section = parts[0]
-    where = f"--set {excerpt(assignment)}"
     if section not in SECTIONS:
         raise ConfigError(f"{where}: unknown section {excerpt(section, quote=True)}"
                           + _suggest(section, list(SECTIONS)))

@@ -8,7 +8,7 @@ them. The traits say what the pipeline must know about the stage (memory, the vo
 reads, the variants it offers); the pipeline reads nothing else about a stage.
 
 The registry knows no stage: a stage module registers its stages when it is imported.
-:mod:`stereocli.match.stages` :func:`declare` says which module registers each built-in stage,
+:mod:`stereocli.matching.stages` :func:`declare` says which module registers each built-in stage,
 and the registry imports that module the first time one of its stages is asked for
 (:func:`get`), or every declared module when the stages are listed (:func:`names`,
 :func:`stages`). So a run imports only the stage modules, and with them the compiled kernels,
@@ -71,7 +71,7 @@ class StageTraits:
     """What the matching pipeline must know about a stage, declared once at registration.
 
     Every field defaults to "no special needs". Predicates take the stage's params (and, for
-    ``needs_second_best``/``needs_right_costs``, the :class:`~stereocli.match.state.MatchState`
+    ``needs_second_best``/``needs_right_costs``, the :class:`~stereocli.matching.state.MatchState`
     first); give them a docstring, which ``stereocli stages -v`` prints.
     """
 
@@ -194,7 +194,7 @@ class ParamSpec:
 @dataclass(frozen=True)
 class Stage:
     """A registered stage: ``func(state, params)`` runs it on a
-    :class:`stereocli.match.state.MatchState`; ``traits`` tell the pipeline how."""
+    :class:`stereocli.matching.state.MatchState`; ``traits`` tell the pipeline how."""
 
     kind: str
     name: str

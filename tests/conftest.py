@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-import stereocli.match.stages  # noqa: F401  (the built-in stages register when imported)
+import stereocli.matching.stages  # noqa: F401  (the built-in stages register when imported)
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
@@ -36,11 +36,11 @@ V2_SCENES = {"tsukuba": ("middlebury2001/tsukuba", "im3", "im4", 16), "venus": (
 
 def v2_bad1(shared_data: Path, scene: str, preset: str, sets: tuple[str, ...] = ()) -> float:
     """Middlebury v2 nonocc bad > 1 px (%) of ``preset`` (with ``--set`` assignments ``sets``) on a scene."""
-    from stereocli.evaluate.api import EvalOptions, evaluate_pair
-    from stereocli.evaluate.datasets import load_scene
+    from stereocli.evaluation.api import EvalOptions, evaluate_pair
+    from stereocli.evaluation.datasets import load_scene
     from stereocli.io.images import read_image
-    from stereocli.match.config import build_config
-    from stereocli.match.pipeline import match_pair
+    from stereocli.matching.config import build_config
+    from stereocli.matching.pipeline import match_pair
 
     folder, left, right, ndisp = V2_SCENES[scene]
     folder = shared_data / folder

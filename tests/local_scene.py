@@ -68,7 +68,7 @@ def two_colour_scene(h: int = 48, w: int = 96, d_bg: int = 3, d_fg: int = 10, se
 def run_stages(left, right, ndisp, stages, min_disp=0):
     """Run ``[(kind, name, params dict), ...]`` on a MatchState; returns the state."""
     from stereocli import registry
-    from stereocli.match.state import MatchState
+    from stereocli.matching.state import MatchState
 
     state = MatchState(left.copy(), right.copy(), min_disp, ndisp)
     for kind, name, values in stages:
@@ -78,6 +78,6 @@ def run_stages(left, right, ndisp, stages, min_disp=0):
 
 
 def wta(state):
-    from stereocli.match.kernels.winners import wta_left
+    from stereocli.matching.kernels.winners import wta_left
 
     return wta_left(state.cost, state.min_disp, state.cost_max)[0]

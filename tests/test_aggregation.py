@@ -8,10 +8,10 @@ import pytest
 
 from local_scene import run_stages, scene, wta
 from stereocli import registry
-from stereocli.match.config import build_config
+from stereocli.matching.config import build_config
 from stereocli.errors import ConfigError
-from stereocli.match.kernels import aggregation as ka
-from stereocli.match.kernels.aggregation import box_filter_volume
+from stereocli.matching.kernels import aggregation as ka
+from stereocli.matching.kernels.aggregation import box_filter_volume
 
 AGGREGATIONS = ["box", "shiftable", "multiple_windows", "variable_window", "cross", "adaptive_weights",
                 "segment_support", "fast_bilateral", "locally_consistent", "guided_filter"]
@@ -44,7 +44,7 @@ def test_box_filter_volume_matches_reference():
 def test_shiftable_is_min_over_window_positions():
     rng = np.random.default_rng(1)
     cost = rng.random((9, 10, 1)).astype(np.float32)  # D = 1 at d = 0: every entry possible
-    from stereocli.match.state import MatchState
+    from stereocli.matching.state import MatchState
 
     st = MatchState(np.zeros((9, 10), np.float32), np.zeros((9, 10), np.float32), 0, 1, cost=cost.copy(), cost_max=1.0)
     registry.get("aggregation", "shiftable").func(st, registry.get("aggregation", "shiftable").make_params({"window": [3, 3]}))
@@ -124,7 +124,7 @@ def test_weighted_support_reference():
 
 
 def test_guided_filter_keeps_constant_and_follows_guide_edges():
-    from stereocli.match.aggregate import _GuidedFilter
+    from stereocli.matching.aggregate import _GuidedFilter
 
     guide = np.zeros((20, 20, 1), np.float32)
     guide[:, 10:] = 1.0
@@ -136,7 +136,7 @@ def test_guided_filter_keeps_constant_and_follows_guide_edges():
 
 
 def _guided_state(left, right, ndisp, min_disp=0, right_view="guided", want_right=True, cost=None):
-    from stereocli.match.state import MatchState, Wants
+    from stereocli.matching.state import MatchState, Wants
 
     state = MatchState(left.copy(), right.copy(), min_disp, ndisp, wants=Wants(right=want_right))
     if cost is None:
@@ -174,7 +174,7 @@ def test_guided_right_view_equals_diagonal_for_flat_guides():
     # With flat guide images the guided filter is a plain (twice applied) box filter, which
     # commutes with the shift that maps a slice to the right view: away from the borders the
     # right-guided WTA must equal wta_right read from the left-guided volume.
-    from stereocli.match.kernels.winners import wta_right
+    from stereocli.matching.kernels.winners import wta_right
 
     rng = np.random.default_rng(5)
     h, w, nd = 30, 60, 6

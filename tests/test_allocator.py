@@ -19,7 +19,7 @@ def _run(code: str, env_value: str | None = None) -> str:
 
 
 def test_importing_the_library_changes_no_process_setting():
-    code = "import stereocli.match.pipeline, stereocli.jobs, stereocli.process as p; print(p._applied)"
+    code = "import stereocli.matching.pipeline, stereocli.jobs, stereocli.process as p; print(p._applied)"
     assert _run(code) == "None"
 
 

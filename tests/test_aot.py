@@ -1,4 +1,4 @@
-"""Kernels compiled ahead of time (stereocli/match/kernels/aot.py) and numba started lazily: the
+"""Kernels compiled ahead of time (stereocli/matching/kernels/aot.py) and numba started lazily: the
 same maps bit for bit, the list of compiled signatures covers a default run, a stale or foreign
 build is never used, and a default run with them does not import numba."""
 
@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 from conftest import REPO
 
-from stereocli.match.config import build_config
-from stereocli.match.kernels import aot
-from stereocli.match.pipeline import match_pair
-from stereocli.match.warmup import synthetic_pair
+from stereocli.matching.config import build_config
+from stereocli.matching.kernels import aot
+from stereocli.matching.pipeline import match_pair
+from stereocli.matching.warmup import synthetic_pair
 
 _FIND = aot.find  # the real lookup (the tests wrap it)
 #: Two kernels built in the test (about 5 s): one that allocates, one that does not.
@@ -201,7 +201,7 @@ def _complete_build() -> Path | None:
     None if neither."""
     import sysconfig
 
-    installed = {Path(sysconfig.get_paths()[key]) / "stereocli" / "match" / "kernels" / "_aot"
+    installed = {Path(sysconfig.get_paths()[key]) / "stereocli" / "matching" / "kernels" / "_aot"
                  for key in ("platlib", "purelib")}
     for folder in [*sorted(installed), aot.BUILD_DIR]:
         manifest = aot.read_manifest(folder)
@@ -235,7 +235,7 @@ def test_runs_of_the_built_presets_never_import_numba(tmp_path):
     cv2.imwrite(str(tmp_path / "r.png"), right)
     code = ("import sys\nfrom stereocli.cli.main import main\n"
             "try:\n    main(sys.argv[1:])\nexcept SystemExit as exit:\n    assert exit.code == 0, exit.code\n"
-            "print('numba' in sys.modules, 'stereocli.match.kernels.slanted' in sys.modules)")
+            "print('numba' in sys.modules, 'stereocli.matching.kernels.slanted' in sys.modules)")
     argv = [str(tmp_path / "l.png"), str(tmp_path / "r.png"), "--ndisp", "64", "-q", "--overwrite"]
     # The library calls of the other tests, in a fresh process: numba never starts either.
     library = ("import sys\nsys.path.insert(0, sys.argv[1])\nimport test_aot\ntest_aot._default_runs()\n"
@@ -257,10 +257,10 @@ def test_runs_of_the_built_presets_never_import_numba(tmp_path):
 
 
 def test_numba_starts_on_first_use_and_kernels_imported_later_get_its_prange():
-    code = ("import sys\nimport stereocli.match.kernels.sgm as sgm\n"
+    code = ("import sys\nimport stereocli.matching.kernels.sgm as sgm\n"
             "print('numba' in sys.modules)\n"
-            "from stereocli.match.kernels.compiling import start_numba\nstart_numba()\n"
-            "import numba\nimport stereocli.match.kernels.costs as costs\n"
+            "from stereocli.matching.kernels.compiling import start_numba\nstart_numba()\n"
+            "import numba\nimport stereocli.matching.kernels.costs as costs\n"
             "print(costs.prange is numba.prange, type(sgm._penalty2).__name__)")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert done.stdout.split() == ["False", "True", "CPUDispatcher"], done.stderr
@@ -292,5 +292,5 @@ def test_a_wheel_without_compiled_kernels_is_pure_python(tmp_path):
     import zipfile
 
     names = zipfile.ZipFile(wheel).namelist()
-    assert "stereocli/match/kernels/_aot/BUILD_FAILED.txt" in names
+    assert "stereocli/matching/kernels/_aot/BUILD_FAILED.txt" in names
     assert not [n for n in names if n.endswith((".so", ".pyd"))]

@@ -14,9 +14,9 @@ import yaml
 from conftest import v2_bad1
 from local_scene import run_stages, wta
 from stereocli import registry
-from stereocli.match.config import build_config
-from stereocli.match.preprocess import measure_column_pattern, remove_column_pattern
-from stereocli.match.state import MatchState
+from stereocli.matching.config import build_config
+from stereocli.matching.preprocess import measure_column_pattern, remove_column_pattern
+from stereocli.matching.state import MatchState
 
 H, W = 192, 96  # the estimate averages down the columns: a real view has a few hundred rows
 
@@ -169,7 +169,7 @@ def test_no_bundled_preset_runs_it():
 
 def test_the_tsukuba_camera_has_the_pattern_and_middeval3_cameras_do_not(shared_data):
     from stereocli.io.images import read_image
-    from stereocli.match.state import luma
+    from stereocli.matching.state import luma
 
     def level(path):
         return float(np.median(np.abs(column_pattern_amplitude(luma(read_image(path).astype(np.float32))))))

@@ -6,7 +6,7 @@ import pytest
 
 from stereocli import registry
 from stereocli.config import parse_set
-from stereocli.match.config import build_config
+from stereocli.matching.config import build_config
 from stereocli.errors import ConfigError
 
 

@@ -8,7 +8,7 @@ import pytest
 
 from local_scene import run_stages, scene, two_colour_scene, wta
 from stereocli import registry
-from stereocli.match.config import build_config
+from stereocli.matching.config import build_config
 from stereocli.errors import ConfigError
 
 ALL_COSTS = ["ad", "sd", "tad", "sad", "ssd", "stad", "ncc", "zncc", "gradient", "color_gradient",
@@ -245,7 +245,7 @@ def test_invalid_parameter_through_config():
 def test_census_transform_bit_strings(window):
     # Strings longer than 32 bits are built in two halves: the order must stay raster order,
     # most significant first, bit = neighbour darker than the centre, border replicated.
-    from stereocli.match.kernels.census import census_transform
+    from stereocli.matching.kernels.census import census_transform
 
     rng = np.random.default_rng(sum(window))
     img = rng.integers(0, 6, (9, 15)).astype(np.float32)  # many ties: equal is not darker
@@ -281,7 +281,7 @@ def weighted_census_reference(left, right, window, gamma, nd):
         return np.array([grey[min(max(y + dy, 0), h - 1), min(max(x + dx, 0), w - 1)] < grey[y, x]
                          for dy, dx in offsets()])
 
-    from stereocli.match.state import luma  # the grey images the census strings are made of
+    from stereocli.matching.state import luma  # the grey images the census strings are made of
 
     gl = luma(np.ascontiguousarray(colour)) if colour.shape[2] == 3 else colour[..., 0]
     gr = luma(np.ascontiguousarray(_ch(right))) if colour.shape[2] == 3 else _ch(right)[..., 0]
@@ -334,8 +334,8 @@ def test_weighted_census_keeps_the_background_beside_an_object(seed):
 
 def test_weighted_census_coarse_level_takes_plain_distances(monkeypatch):
     # A coarse-to-fine SGM's coarse level only bounds the search: it runs without the weights.
-    from stereocli.match.kernels import census as kc
-    from stereocli.match.pipeline import match_pair
+    from stereocli.matching.kernels import census as kc
+    from stereocli.matching.pipeline import match_pair
 
     shapes = []
     original = kc.support_planes
@@ -350,8 +350,8 @@ def test_weighted_census_coarse_level_takes_plain_distances(monkeypatch):
 
 @pytest.mark.parametrize("threads", [1, 2])
 def test_nearest_bit_strings_match_a_numpy_reference_ties_included(threads):
-    from stereocli.match.kernels import set_threads
-    from stereocli.match.kernels.census import nearest_bit_strings
+    from stereocli.matching.kernels import set_threads
+    from stereocli.matching.kernels.census import nearest_bit_strings
 
     rng = np.random.default_rng(5)
     queries = rng.integers(0, 256, (37, 32), dtype=np.uint8)

@@ -225,7 +225,7 @@ def _real_scenes(data: Path):
 
 @pytest.fixture(scope="module")
 def real_estimates(shared_data):
-    from stereocli.evaluate.datasets import load_scene
+    from stereocli.evaluation.datasets import load_scene
 
     out = {}
     for name, folder, left, right in _real_scenes(shared_data):
@@ -271,11 +271,11 @@ def test_adirondack_six_rows_lower_is_flagged(shared_data):
 def test_default_preset_with_estimated_ranges_scores_like_the_known_ones(shared_data):
     """Mean bad 2.0 (official rules) over the 19 scenes: at most 1.0 point worse than with the
     known ranges (MiddEval3 calib.txt ndisp; 16/32/64/64 for the 2001/2003 scenes)."""
-    from stereocli.evaluate.api import EvalOptions, evaluate_pair
-    from stereocli.evaluate.datasets import load_scene
+    from stereocli.evaluation.api import EvalOptions, evaluate_pair
+    from stereocli.evaluation.datasets import load_scene
     from stereocli.io.middlebury import read_calib_txt
-    from stereocli.match.config import build_config
-    from stereocli.match.pipeline import match_pair
+    from stereocli.matching.config import build_config
+    from stereocli.matching.pipeline import match_pair
 
     config = build_config()
     known, estimated = [], []

@@ -94,7 +94,7 @@ def test_remote_scheduler_resume_and_partial_failure(run_cli, tmp_path, scenes, 
 def _plan(scenes: Path, out: Path, **marks):
     from stereocli.io.pairs import discover_pairs
     from stereocli.jobs.match import plan_items
-    from stereocli.match.config import build_config
+    from stereocli.matching.config import build_config
 
     pairs, _ = discover_pairs([str(scenes)])
     items = plan_items(pairs, out, config=build_config(["fast"], []).as_dict(), ndisp=None, min_disp=None, right=True)

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from stereocli.evaluate import api
+from stereocli.evaluation import api
 from stereocli.jobs import evaluate as jobs_evaluate
 from stereocli.io.pfm import read_pfm, write_pfm
 

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from stereocli.errors import ConfigError, DataError
-from stereocli.evaluate import EvalOptions, SceneResult, evaluate_pair, weighted_average
-from stereocli.evaluate.datasets import Scene, load_middlebury_v2, middeval3_weight
-from stereocli.evaluate.metrics import (
+from stereocli.evaluation import EvalOptions, SceneResult, evaluate_pair, weighted_average
+from stereocli.evaluation.datasets import Scene, load_middlebury_v2, middeval3_weight
+from stereocli.evaluation.metrics import (
     derive_nonocc_mask,
     kitti_interpolate_background,
     kitti_stats,

@@ -9,8 +9,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stereocli.evaluate import EvalOptions, evaluate_pair
-from stereocli.evaluate.datasets import load_scene
+from stereocli.evaluation import EvalOptions, evaluate_pair
+from stereocli.evaluation.datasets import load_scene
 from stereocli.io.images import read_disparity, read_image
 from stereocli.io.middlebury import read_calib_txt
 
@@ -74,7 +74,7 @@ def test_half_size_estimate_follows_full_resolution_rule(shared_data):
         with np.errstate(invalid="ignore"):
             err = np.abs(tl - gt)[mask & valid] * 4
         n_inv = (mask & ~valid).sum()
-        from stereocli.evaluate.datasets import Scene
+        from stereocli.evaluation.datasets import Scene
 
         scene = Scene(name=name, kind="middlebury2014", gt=gt, masks={"nonocc": mask, "all": np.isfinite(gt)},
                       gt_path=folder, ndisp=None, resolution="Q")

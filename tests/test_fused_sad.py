@@ -12,13 +12,13 @@ import numpy as np
 import pytest
 
 from local_scene import scene
-from stereocli.match.config import build_config, validate
-from stereocli.match import pipeline
-from stereocli.match.kernels import costs as kl
-from stereocli.match.kernels.costs import mask_invalid_right
-from stereocli.match.kernels.fused_sad import sad_wta
-from stereocli.match.kernels.winners import wta_left
-from stereocli.match.pipeline import fused_cost_wta, match_pair
+from stereocli.matching.config import build_config, validate
+from stereocli.matching import pipeline
+from stereocli.matching.kernels import costs as kl
+from stereocli.matching.kernels.costs import mask_invalid_right
+from stereocli.matching.kernels.fused_sad import sad_wta
+from stereocli.matching.kernels.winners import wta_left
+from stereocli.matching.pipeline import fused_cost_wta, match_pair
 
 
 def _images(rng, h, w, nc, kind):

@@ -140,7 +140,7 @@ def test_a_worker_that_cannot_see_a_path_fails_that_item(tmp_path, data):
     from stereocli.io.pairs import discover_pairs
     from stereocli.jobs.executors import run_batch
     from stereocli.jobs.match import match_item, plan_items
-    from stereocli.match.config import build_config
+    from stereocli.matching.config import build_config
 
     shutil.copytree(data / "s0", tmp_path / "in" / "s0")
     shutil.copytree(data / "s1", tmp_path / "in" / "s1")

@@ -213,7 +213,7 @@ def test_hostile_message(case: Case, run_cli, tmp_path, scenes):
 # -- a NaN map is never written ------------------------------------------------------------------
 
 def test_a_stage_producing_nan_fails_the_pair_and_writes_nothing(run_cli, tmp_path, scenes, monkeypatch):
-    import stereocli.match.pipeline as pipeline
+    import stereocli.matching.pipeline as pipeline
 
     real = pipeline.match_pair
 
@@ -232,8 +232,8 @@ def test_a_stage_producing_nan_fails_the_pair_and_writes_nothing(run_cli, tmp_pa
 
 def test_a_float_image_with_nan_is_refused_by_the_library():
     from stereocli.errors import DataError
-    from stereocli.match.config import build_config
-    from stereocli.match.pipeline import match_pair
+    from stereocli.matching.config import build_config
+    from stereocli.matching.pipeline import match_pair
 
     left = np.random.default_rng(0).uniform(0, 255, (40, 60)).astype(np.float32)
     right = left.copy()
@@ -375,7 +375,7 @@ def test_eval_and_calibrate_exit_130_or_143_on_interrupt(tmp_path, scenes, match
 
 def test_ros_export_converts_millimetres_to_metres_and_reads_back_metres(tmp_path):
     from stereocli.io.calib import load_calibration, save_calibration, to_middlebury
-    from stereocli.rectify import rectified_calibration
+    from stereocli.rectification import rectified_calibration
 
     mm = rectified_calibration(load_calibration(_rig_file(tmp_path, "mm", 1000.0)))
     assert mm.baseline == pytest.approx(120.0, rel=0.01)  # the synthetic rig: 0.12 m

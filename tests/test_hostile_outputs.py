@@ -129,7 +129,7 @@ def test_a_marker_from_another_version_does_not_match(run_cli, tmp_path, scenes)
     from stereocli.io.pairs import discover_pairs
     from stereocli.jobs.items import is_done, marker_matches
     from stereocli.jobs.match import plan_items
-    from stereocli.match.config import build_config
+    from stereocli.matching.config import build_config
 
     out = tmp_path / "out"
     assert run_cli("match", scenes / "planes", "-o", out, *FAST).code == 0

@@ -47,7 +47,7 @@ def scenes(tmp_path_factory) -> Path:
 def _plan(data: Path | str, out: Path | str, **options):
     from stereocli.io.pairs import discover_pairs
     from stereocli.jobs.match import plan_items
-    from stereocli.match.config import build_config
+    from stereocli.matching.config import build_config
 
     sets = options.pop("sets", [])
     pairs, _ = discover_pairs([str(data)])
@@ -299,7 +299,7 @@ def _other_stereocli(root: Path, change: str) -> Path:
 @pytest.mark.parametrize("change", ["version", "kernels", "sources"])
 def test_a_worker_with_another_stereocli_is_refused(run_cli, tmp_path, scenes, scheduler, start_worker, change):
     from stereocli import __version__
-    from stereocli.match.kernels.aot import kernel_sources_hash
+    from stereocli.matching.kernels.aot import kernel_sources_hash
 
     other = _other_stereocli(tmp_path / "other", change)
     address = start_worker("other", tmp_path, (other, TESTS))["other"]

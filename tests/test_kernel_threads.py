@@ -7,7 +7,7 @@ import threading
 import numpy as np
 import pytest
 
-from stereocli.match import kernels
+from stereocli.matching import kernels
 
 
 @pytest.fixture(params=[1, 2, 3])

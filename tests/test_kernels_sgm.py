@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stereocli.match.kernels import sgm as ks
+from stereocli.matching.kernels import sgm as ks
 
 
 def _penalty(i0: float, i1: float, p1: int, p2: int, gamma: float) -> int:
@@ -84,9 +84,9 @@ def test_sgm_uint16_costs_and_negative_min_disp():
 @pytest.mark.parametrize("height", [1, 5, 8])
 def test_sgm_right_view_and_cost_multiplier_match_reference(min_disp, height):
     # The right-view WTA is taken while the backward pass finishes each row: it must equal
-    # the volume-level WTA (stereocli.match.kernels.winners.wta_right) on the final sums, for
+    # the volume-level WTA (stereocli.matching.kernels.winners.wta_right) on the final sums, for
     # odd/even/single-row heights (the two stripes split the rows at H // 2).
-    from stereocli.match.kernels.winners import wta_right
+    from stereocli.matching.kernels.winners import wta_right
 
     rng = np.random.default_rng(height)
     cq = rng.integers(0, 20, (height, 14, 6)).astype(np.uint8)
@@ -139,9 +139,9 @@ def on_one_and_two_threads(run):
     ``prange`` kernels and the chunk kernels' pool alike; the thread counts are restored afterwards."""
     import numba
 
-    from stereocli.match import kernels
+    from stereocli.matching import kernels
 
-    old, old_chunks = numba.get_num_threads(), kernels._threads[0]
+    old, old_chunks = numba.get_num_threads(), kernels.get_threads()
     results = []
     try:
         for threads in (1, min(2, numba.config.NUMBA_NUM_THREADS)):

@@ -11,15 +11,16 @@ import pytest
 PACKAGE = Path(__file__).resolve().parents[1] / "stereocli"
 
 #: The layering (README, Architecture): a module may import its own layer or lower ones.
-#: cli → jobs → {match, rectify, triangulate, evaluate, calib, synth, features} → {io, registry,
-#: config, viz, runinfo, process} → errors
+#: cli → jobs → api → {matching, rectification, triangulation, evaluation, calib, synth, features} → {io,
+#: registry, config, viz, runinfo, process} → errors
 LAYERS = {
     "errors": 0,
     "io": 1, "registry": 1, "config": 1, "viz": 1, "runinfo": 1, "process": 1,
-    "match": 2, "rectify": 2, "triangulate": 2, "evaluate": 2, "calib": 2, "synth": 2, "features": 2,
-    "jobs": 3,
-    "cli": 4,
-    "__main__": 5,
+    "matching": 2, "rectification": 2, "triangulation": 2, "evaluation": 2, "calib": 2, "synth": 2, "features": 2,
+    "api": 3, "apidoc": 3,
+    "jobs": 4,
+    "cli": 5,
+    "__main__": 6,
 }
 
 
@@ -158,7 +159,7 @@ def test_no_attribute_is_set_on_a_function_after_its_definition():
     assert not found, "declare these as StageTraits at registration: " + ", ".join(found)
 
 
-@pytest.mark.parametrize("module", ["stereocli.match.pipeline", "stereocli.match.config"])
+@pytest.mark.parametrize("module", ["stereocli.matching.pipeline", "stereocli.matching.config"])
 def test_the_pipeline_never_tests_a_stage_name(module):
     tree = ast.parse(MODULES[module].read_text())
     tests = [ast.unparse(n) for n in ast.walk(tree) if isinstance(n, ast.Compare)

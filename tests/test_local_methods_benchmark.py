@@ -84,7 +84,7 @@ def _slanted_pair(h=64, w=128, seed=0):
 
 
 def test_chain_is_dense_and_sub_pixel_accurate_on_a_slanted_plane(bench):
-    from stereocli.match.pipeline import match_pair
+    from stereocli.matching.pipeline import match_pair
 
     left, right, gt, mask = _slanted_pair()
     method = "guided_filter"

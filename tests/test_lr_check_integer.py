@@ -8,11 +8,11 @@ import pytest
 
 from local_scene import scene
 from stereocli import registry
-from stereocli.match.config import validate
+from stereocli.matching.config import validate
 from stereocli.errors import ConfigError
-from stereocli.match.kernels.maps import lr_check_onto
-from stereocli.match.pipeline import match_pair, prepare
-from stereocli.match.state import MatchState
+from stereocli.matching.kernels.maps import lr_check_onto
+from stereocli.matching.pipeline import match_pair, prepare
+from stereocli.matching.state import MatchState
 
 INF = np.float32(np.inf)
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stereocli.match.config import build_config
-from stereocli.match.pipeline import extend_rows_into_invalid, match_pair
+from stereocli.matching.config import build_config
+from stereocli.matching.pipeline import extend_rows_into_invalid, match_pair
 from test_sgm import warp_pair
 
 

@@ -20,8 +20,8 @@ import json, resource, sys
 import cv2
 from stereocli.io.images import read_image
 from stereocli.io.middlebury import read_calib_txt
-from stereocli.match.config import build_config
-from stereocli.match.pipeline import match_pair
+from stereocli.matching.config import build_config
+from stereocli.matching.pipeline import match_pair
 from stereocli.process import keep_freed_memory
 
 keep_freed_memory()  # as the command line runs

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from stereocli.errors import ConfigError
-from stereocli.match.config import build_config
-from stereocli.match.pipeline import match_pair
-from stereocli.match.refine_fusion import fuse_with_mirrored, reassign_contradicted, sample_right_map
+from stereocli.matching.config import build_config
+from stereocli.matching.pipeline import match_pair
+from stereocli.matching.refine_fusion import fuse_with_mirrored, reassign_contradicted, sample_right_map
 from stereocli.synth.scenes import render, scene_surfaces
 from test_kernels_sgm import on_one_and_two_threads
 

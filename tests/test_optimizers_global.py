@@ -12,10 +12,10 @@ import pytest
 from click.testing import CliRunner
 
 from stereocli import registry
-from stereocli.match.config import build_config
+from stereocli.matching.config import build_config
 from stereocli.errors import ConfigError
-from stereocli.match.kernels.dp import dp_occlusion, scanline_optimize, warp_to_right
-from stereocli.match.pipeline import match_pair
+from stereocli.matching.kernels.dp import dp_occlusion, scanline_optimize, warp_to_right
+from stereocli.matching.pipeline import match_pair
 
 METHODS = ("dp", "so", "bp", "gc", "coop")
 
@@ -122,7 +122,7 @@ def test_scanline_optimize_is_exact_on_a_tiny_row():
 
 def test_bp_is_exact_on_a_chain():
     """Min-sum BP on a tree (one image row) converges to the exact minimum = SO's Viterbi."""
-    from stereocli.match.kernels import bp as kb
+    from stereocli.matching.kernels import bp as kb
 
     rng = np.random.default_rng(2)
     w, nd = 12, 5
@@ -141,7 +141,7 @@ def test_gc_expansion_move_is_optimal():
     """Each α-expansion returns the best labelling among all expansions (brute force)."""
     import maxflow  # PyMaxflow: the test extra installs it
 
-    from stereocli.match.optimize.gc import energy, expansion
+    from stereocli.matching.optimize.gc import energy, expansion
 
     rng = np.random.default_rng(3)
     for trial in range(30):
@@ -163,8 +163,8 @@ def test_gc_expansion_move_is_optimal():
 
 def test_dp_alignment_is_ordered_and_consistent():
     left, right, gt, _ = step_scene()
-    from stereocli.match.cost import census_cost, CensusParams
-    from stereocli.match.state import MatchState
+    from stereocli.matching.cost import census_cost, CensusParams
+    from stereocli.matching.state import MatchState
 
     state = MatchState(left, right, 0, 14)
     census_cost(state, CensusParams())
@@ -254,7 +254,7 @@ def test_adcensus_preset_runs():
 
 
 def test_bp_on_tsukuba(shared_data, tmp_path):
-    from stereocli.evaluate.metrics import derive_nonocc_mask, middlebury_stats
+    from stereocli.evaluation.metrics import derive_nonocc_mask, middlebury_stats
 
     folder = shared_data / "middlebury2001" / "tsukuba"
     left = cv2.imread(str(folder / "im3.png"))[..., ::-1].copy()

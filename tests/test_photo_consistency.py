@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from stereocli import registry
-from stereocli.match.cost import box_mean_image
-from stereocli.match.kernels import photo as kp
-from stereocli.match.state import MatchState
+from stereocli.matching.cost import box_mean_image
+from stereocli.matching.kernels import photo as kp
+from stereocli.matching.state import MatchState
 from conftest import v2_bad1
 from local_scene import render
 from test_kernels_sgm import on_one_and_two_threads
@@ -118,7 +118,7 @@ def test_a_correct_map_and_invalid_pixels_are_left_alone():
 
 
 def _redecide_reference(left, right, disp, flagged, radius, step, gamma_c, gamma_s, truncation, reach, margin):
-    """One pass of :func:`~stereocli.match.kernels.photo.redecide_flagged`, in numpy, from its docstring."""
+    """One pass of :func:`~stereocli.matching.kernels.photo.redecide_flagged`, in numpy, from its docstring."""
     h, w = disp.shape
     offsets = np.arange(-(radius // step) * step, radius + 1, step)
     spatial = np.exp(-np.hypot(offsets[:, None], offsets[None, :]) / gamma_s).astype(np.float32)
@@ -220,7 +220,7 @@ def test_the_residual_and_its_3x3_mean():
 
 def test_unknown_parameters_are_config_errors():
     from stereocli.errors import ConfigError
-    from stereocli.match.config import build_config
+    from stereocli.matching.config import build_config
 
     with pytest.raises(ConfigError, match="photo_consistency"):
         build_config(["quality"], ["refinement.photo_consistency.marginn=2"])

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 from stereocli import registry
-from stereocli.match.config import build_config
-from stereocli.match.pipeline import match_pair
-from stereocli.match.refine_segment import PlaneFitParams, fit_segment_planes, segment_image
-from stereocli.match.state import MatchState
+from stereocli.matching.config import build_config
+from stereocli.matching.pipeline import match_pair
+from stereocli.matching.refine_segment import PlaneFitParams, fit_segment_planes, segment_image
+from stereocli.matching.state import MatchState
 from test_kernels_sgm import on_one_and_two_threads
 
 A, B, C = 0.06, 0.03, 6.0  # slanted plane d = A·x + B·y + C (left-referenced)
@@ -72,7 +72,7 @@ def test_fit_recovers_plane_despite_outliers_and_holes(method):
 
 
 def test_pixels_by_segment_is_a_stable_sort_of_the_labels():
-    from stereocli.match.kernels.segment import pixels_by_segment
+    from stereocli.matching.kernels.segment import pixels_by_segment
 
     rng = np.random.default_rng(4)
     labels = rng.integers(0, 9, (23, 31)).astype(np.int32)
@@ -129,7 +129,7 @@ def _label_regions_reference(img: np.ndarray, tolerance: float, min_size: int) -
 
 @pytest.mark.parametrize("tolerance, min_size", [(0.0, 1), (1.0, 1), (1.0, 4), (2.0, 10)])
 def test_label_regions_matches_its_definition(tolerance, min_size):
-    from stereocli.match.kernels.segment import label_regions
+    from stereocli.matching.kernels.segment import label_regions
 
     rng = np.random.default_rng(int(tolerance * 10) + min_size)
     # Blocky colours (large components) plus noise of 0-2 levels (links that hold or break).
@@ -247,7 +247,7 @@ def _two_surface_problem(rng, h: int, w: int, split: int):
 def test_local_consistency_kernel_matches_reference_on_random_maps():
     # 8-bit-valued colour images (the kernel's colour tables are exact there), noisy disparities
     # with holes and two surfaces.
-    from stereocli.match.kernels import segment as ks
+    from stereocli.matching.kernels import segment as ks
 
     rng = np.random.default_rng(11)
     h, w = 16, 21
@@ -263,7 +263,7 @@ def test_local_consistency_min_spread_votes_only_near_discontinuities():
     # Two noisy flat surfaces (3.3 and 9.7 px ± 0.2) meeting at column 20: with min_spread 2 only pixels
     # whose 7×7 window reaches across the edge (columns 17..22) are voted on; the rest keep
     # their exact input value and confidence 1. The voted pixels get what the full vote gives.
-    from stereocli.match.refine_segment import LocalConsistencyParams, local_consistency
+    from stereocli.matching.refine_segment import LocalConsistencyParams, local_consistency
 
     rng = np.random.default_rng(3)
     h, w = 12, 40
@@ -330,7 +330,7 @@ def line_vote_reference(disp, left, right, min_disp, ndisp, radius, gamma_s, gam
 def test_separable_local_consistency_matches_reference(min_change, channels, right):
     # Rows, then columns of the result, on noisy random maps with holes, two surfaces and a
     # range that starts below zero; colour (or grey) images with 8-bit values.
-    from stereocli.match.refine_segment import LocalConsistencyParams, local_consistency
+    from stereocli.matching.refine_segment import LocalConsistencyParams, local_consistency
 
     rng = np.random.default_rng(5)
     h, w = 17, 23
@@ -359,7 +359,7 @@ def test_separable_local_consistency_moves_fattened_edges_and_keeps_slants():
     # A foreground square (disparity 12) fattened by 3 px to the right and 2 px downwards onto a
     # slanted background (sub-pixel values 3.0..5.4): the separable vote with min_change 2 puts
     # the disparity edges back on the colour edges and leaves every background value as it was.
-    from stereocli.match.refine_segment import LocalConsistencyParams, local_consistency
+    from stereocli.matching.refine_segment import LocalConsistencyParams, local_consistency
 
     h, w = 40, 60
     image = np.full((h, w, 3), 60, np.float32)
@@ -384,7 +384,7 @@ def test_separable_local_consistency_moves_fattened_edges_and_keeps_slants():
 def test_local_consistency_min_change_keeps_sub_pixel_values():
     # A slanted plane whose 1-px bins change every 10 px: with min_change 2 no pixel moves (the
     # winning bin is never 2 bins away); with 0 every voted pixel takes its bin's mean.
-    from stereocli.match.refine_segment import LocalConsistencyParams, local_consistency
+    from stereocli.matching.refine_segment import LocalConsistencyParams, local_consistency
 
     h, w = 12, 50
     rng = np.random.default_rng(2)
@@ -403,7 +403,7 @@ def test_local_consistency_min_change_keeps_sub_pixel_values():
 
 def test_local_consistency_separable_rejects_fill_invalid_and_multiplies_confidence():
     from stereocli.errors import ConfigError
-    from stereocli.match.refine_segment import LocalConsistencyParams, local_consistency
+    from stereocli.matching.refine_segment import LocalConsistencyParams, local_consistency
 
     with pytest.raises(ConfigError, match="fill_invalid needs the square window"):
         registry.get("refinement", "local_consistency").make_params({"separable": True, "fill_invalid": True})
@@ -422,7 +422,7 @@ def test_local_consistency_separable_rejects_fill_invalid_and_multiplies_confide
 
 
 def test_square_local_consistency_without_right_term_matches_reference():
-    from stereocli.match.refine_segment import LocalConsistencyParams, local_consistency
+    from stereocli.matching.refine_segment import LocalConsistencyParams, local_consistency
 
     rng = np.random.default_rng(8)
     h, w = 14, 19
@@ -437,7 +437,7 @@ def test_square_local_consistency_without_right_term_matches_reference():
 
 
 def test_separable_local_consistency_is_deterministic_across_thread_counts():
-    from stereocli.match.refine_segment import LocalConsistencyParams, local_consistency
+    from stereocli.matching.refine_segment import LocalConsistencyParams, local_consistency
 
     rng = np.random.default_rng(4)
     h, w = 60, 90
@@ -505,7 +505,7 @@ def geodesic_reference(disp, image, min_disp, ndisp, gamma_s, gamma_c, band, min
 @pytest.mark.parametrize("seed, min_lead, lines", [(0, 1.0, "both"), (1, 1.0, "both"), (0, 1.5, "rows"),
                                                     (1, 1.5, "columns"), (3, 1.5, "both")])
 def test_geodesic_vote_matches_reference(seed, min_lead, lines):
-    from stereocli.match.refine_segment import GeodesicVoteParams, geodesic_vote
+    from stereocli.matching.refine_segment import GeodesicVoteParams, geodesic_vote
 
     rng = np.random.default_rng(seed)
     h, w = 14, 19
@@ -537,7 +537,7 @@ def test_geodesic_vote_moves_fattened_edges_and_keeps_slants(min_lead):
     # 1.5 px on this slant, from 7.6–9 px off); the square and the rest stay exactly. The
     # fattened pixels' own bin reaches them only across the colour edge, so a required lead
     # of 2.5 moves them too.
-    from stereocli.match.refine_segment import GeodesicVoteParams, geodesic_vote
+    from stereocli.matching.refine_segment import GeodesicVoteParams, geodesic_vote
 
     h, w = 40, 60
     image = np.full((h, w, 3), 60, np.float32)
@@ -557,7 +557,7 @@ def test_geodesic_vote_moves_fattened_edges_and_keeps_slants(min_lead):
 
 
 def test_geodesic_vote_is_deterministic_across_thread_counts():
-    from stereocli.match.refine_segment import GeodesicVoteParams, geodesic_vote
+    from stereocli.matching.refine_segment import GeodesicVoteParams, geodesic_vote
 
     # Stripes of two colours with disparity edges 2 px off the colour edges, plus noise.
     rng = np.random.default_rng(6)

@@ -8,8 +8,8 @@ import pytest
 
 from stereocli import registry
 from stereocli.errors import ConfigError
-from stereocli.match.kernels import refine as kr
-from stereocli.match.state import MatchState
+from stereocli.matching.kernels import refine as kr
+from stereocli.matching.state import MatchState
 
 INF = np.float32(np.inf)
 

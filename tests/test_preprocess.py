@@ -8,10 +8,10 @@ import pytest
 
 from local_scene import run_stages, scene, wta
 from stereocli import registry
-from stereocli.match.config import build_config
+from stereocli.matching.config import build_config
 from stereocli.errors import ConfigError
-from stereocli.match.preprocess import match_histogram
-from stereocli.match.state import MatchState
+from stereocli.matching.preprocess import match_histogram
+from stereocli.matching.state import MatchState
 
 FILTERS = ["none", "log", "mean_removal", "bilateral_subtraction", "xsobel", "histogram_matching"]
 

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import pytest
 
-from stereocli.evaluate.api import EvalOptions, evaluate_pair
-from stereocli.evaluate.datasets import load_scene
+from stereocli.evaluation.api import EvalOptions, evaluate_pair
+from stereocli.evaluation.datasets import load_scene
 from stereocli.io.images import read_image
 from stereocli.io.middlebury import read_calib_txt
-from stereocli.match.config import build_config
-from stereocli.match.pipeline import match_pair
+from stereocli.matching.config import build_config
+from stereocli.matching.pipeline import match_pair
 
 
 def _bad(folder, preset: str, sets: tuple[str, ...] = ()) -> tuple[float, float]:

@@ -9,7 +9,7 @@ import pytest
 from stereocli.io.calib import load_calibration, save_calibration
 from stereocli.io.images import read_image
 from stereocli.io.middlebury import read_calib_txt
-from stereocli.rectify import build_maps
+from stereocli.rectification import build_maps
 from stereocli.synth.rig import default_rig, render_scene
 
 

@@ -10,7 +10,7 @@ import pytest
 
 from stereocli.io.images import read_image, write_image
 from stereocli.io.middlebury import read_calib_txt
-from stereocli.rectify.uncalibrated import (UncalibratedRectification, _sample_disparity, disparity_to_original,
+from stereocli.rectification.uncalibrated import (UncalibratedRectification, _sample_disparity, disparity_to_original,
                                             estimate_rectification, transform_points, warp_pair)
 from stereocli.synth.scenes import render, scene_surfaces
 
@@ -245,10 +245,10 @@ def warped_middlebury_case(folder, left_name: str, right_name: str, ndisp: int) 
     up to the original pair's own rectification), their smallest rectified disparity,
     and the default preset's nonocc bad 2.0 on the original pair and mapped back from the
     rectified one (both scored where the warp left the true match in view)."""
-    from stereocli.evaluate.api import evaluate_pair
-    from stereocli.evaluate.datasets import load_scene
-    from stereocli.match.config import build_config
-    from stereocli.match.pipeline import match_pair
+    from stereocli.evaluation.api import evaluate_pair
+    from stereocli.evaluation.datasets import load_scene
+    from stereocli.matching.config import build_config
+    from stereocli.matching.pipeline import match_pair
 
     left, right = read_image(folder / f"{left_name}.png"), read_image(folder / f"{right_name}.png")
     h, w = left.shape[:2]

@@ -8,11 +8,11 @@ import pytest
 
 from local_scene import run_stages, scene
 from stereocli import registry
-from stereocli.match.config import build_config
+from stereocli.matching.config import build_config
 from stereocli.errors import ConfigError
-from stereocli.match.pipeline import match_pair
-from stereocli.match.kernels.refine import single_matching_phase_kernel, weighted_median_at
-from stereocli.match.state import MatchState
+from stereocli.matching.pipeline import match_pair
+from stereocli.matching.kernels.refine import single_matching_phase_kernel, weighted_median_at
+from stereocli.matching.state import MatchState
 
 INF = np.inf
 

@@ -9,10 +9,10 @@ import pytest
 from local_scene import run_stages, scene
 from stereocli import registry
 from stereocli.errors import ConfigError
-from stereocli.match.kernels import aggregation as ka
-from stereocli.match.kernels import refine as kr
-from stereocli.match.kernels import voting as kv
-from stereocli.match.state import MatchState
+from stereocli.matching.kernels import aggregation as ka
+from stereocli.matching.kernels import refine as kr
+from stereocli.matching.kernels import voting as kv
+from stereocli.matching.state import MatchState
 
 
 # --- pure-numpy references -------------------------------------------------------------------
@@ -169,7 +169,7 @@ def _matched_scene():
     stages = [("cost", "census", {"window": [5, 5]}), ("aggregation", "box", {"window": [5, 5]}),
               ("optimizer", "wta", {})]
     state = run_stages(left, right, 16, stages)
-    from stereocli.match.kernels.winners import wta_right
+    from stereocli.matching.kernels.winners import wta_right
 
     state.disparity_right = wta_right(state.cost, 0, np.float32(state.cost_max))
     return state, gt, mask
@@ -240,9 +240,9 @@ def test_adcensus_preset_meets_tsukuba_target(shared_data):
     """The adcensus preset scores ≤ 1.5 % nonocc bad > 1 on Tsukuba (derived mask)."""
     import cv2
 
-    from stereocli.match.config import build_config
-    from stereocli.evaluate.metrics import derive_nonocc_mask, middlebury_stats
-    from stereocli.match.pipeline import match_pair
+    from stereocli.matching.config import build_config
+    from stereocli.evaluation.metrics import derive_nonocc_mask, middlebury_stats
+    from stereocli.matching.pipeline import match_pair
 
     folder = shared_data / "middlebury2001" / "tsukuba"
     left = cv2.imread(str(folder / "im3.png"))[..., ::-1].copy()

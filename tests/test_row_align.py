@@ -10,8 +10,8 @@ import pytest
 
 from stereocli.features.vertical_offset import VerticalOffset, fit_vertical_offset, resample_rows, track_rows
 from stereocli.io.images import read_image
-from stereocli.match.config import build_config
-from stereocli.match.pipeline import match_pair
+from stereocli.matching.config import build_config
+from stereocli.matching.pipeline import match_pair
 from stereocli.synth.scenes import render, scene_surfaces
 from conftest import two_scenes
 
@@ -164,11 +164,11 @@ def test_middeval3_row_offsets(shared_data, scene, low, high, preset):
 def test_tracks_do_not_depend_on_the_thread_count():
     import cv2
 
-    from stereocli.match.kernels import _threads, set_threads
+    from stereocli.matching.kernels import get_threads, set_threads
 
     scene = render(scene_surfaces("curved", W, H, seed=0), W, H, right_row_offset=0.3)
     runs = []
-    before = cv2.getNumThreads(), _threads[0]
+    before = cv2.getNumThreads(), get_threads()
     try:
         # OpenCV's threads, and the kernel threads that run the two views' preparation side by side.
         for threads in (1, 2):
@@ -213,8 +213,8 @@ def test_the_right_map_keeps_the_input_right_views_rows():
 def test_the_default_gains_on_middeval3(shared_data, without_row_align):
     """The default's weighted MiddEval3-Q bad 2.0 (official rules): measured 18.93 without the
     stage and 17.87 with it; Motorcycle 12.80 -> 9.26, Playtable 28.75 -> 21.83."""
-    from stereocli.evaluate.api import EvalOptions, evaluate_pair, weighted_average
-    from stereocli.evaluate.datasets import load_scene
+    from stereocli.evaluation.api import EvalOptions, evaluate_pair, weighted_average
+    from stereocli.evaluation.datasets import load_scene
     from stereocli.io.middlebury import read_calib_txt
 
     folders = sorted(p for p in (shared_data / "middlebury2014" / "trainingQ").iterdir() if (p / "calib.txt").is_file())
@@ -251,8 +251,8 @@ def test_a_given_plane_is_applied_without_tracking(without_row_align):
 
 
 def test_views_go_grey_when_no_stage_reads_their_colour(monkeypatch, tmp_path):
-    import stereocli.match.pipeline as pipeline
-    from stereocli.match.kernels.images import luma
+    import stereocli.matching.pipeline as pipeline
+    from stereocli.matching.kernels.images import luma
 
     scene = render(scene_surfaces("curved", W, H, seed=0), W, H, right_row_offset=0.4)
     assert scene["left"].dtype == np.uint8
@@ -308,8 +308,8 @@ def test_the_mirrored_pair_is_given_the_pairs_plane(monkeypatch):
     # image and in offset, instead of tracking again. The plane row_align measures on the
     # mirrored pair itself agrees with it.
     import stereocli.features.vertical_offset as vertical_offset
-    from stereocli.match import preprocess
-    from stereocli.match.pipeline import prepare
+    from stereocli.matching import preprocess
+    from stereocli.matching.pipeline import prepare
 
     plane = VerticalOffset(0.6, 0.8, -0.6, W, H, 0, 0.0)
     scene = render(scene_surfaces("planes", W, H, seed=0), W, H)

@@ -6,9 +6,9 @@ import cv2
 import numpy as np
 import pytest
 
-from stereocli.match.config import build_config
+from stereocli.matching.config import build_config
 from stereocli.errors import MemoryBudgetError
-from stereocli.match.pipeline import match_pair
+from stereocli.matching.pipeline import match_pair
 
 MARGIN = 6  # window half-sizes and path start-up at the borders
 
@@ -151,8 +151,8 @@ def test_memory_estimate_counts_integer_census_volume_at_its_size(tmp_path):
     # copy while both are alive: 5 bytes per cell. Checked on the per-cell growth of the
     # estimate over 10 000 rows, so image buffers and the runtime base cancel out and SGM's
     # O(W·D) row buffers are negligible.
-    from stereocli.match.config import build_config
-    from stereocli.match.pipeline import estimate_memory
+    from stereocli.matching.config import build_config
+    from stereocli.matching.pipeline import estimate_memory
 
     def bytes_per_cell(sets, files=()):
         config = build_config(list(files), sets)

@@ -6,14 +6,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stereocli.match.config import build_config
-from stereocli.match.kernels import census as kc
-from stereocli.match.kernels.costs import mask_invalid_right
-from stereocli.match.kernels import sgm as ks
-from stereocli.match.kernels import sgm_window as kw
-from stereocli.match.optimize import sgm as osgm
-from stereocli.match.pipeline import match_pair
-from stereocli.match.state import MatchState
+from stereocli.matching.config import build_config
+from stereocli.matching.kernels import census as kc
+from stereocli.matching.kernels.costs import mask_invalid_right
+from stereocli.matching.kernels import sgm as ks
+from stereocli.matching.kernels import sgm_window as kw
+from stereocli.matching.optimize import sgm as osgm
+from stereocli.matching.pipeline import match_pair
+from stereocli.matching.state import MatchState
 from test_kernels_sgm import _layered_costs, reference_sgm
 from test_sgm import bad, run, warp_pair
 
@@ -276,7 +276,7 @@ def test_confidence_and_uniqueness_from_the_winner_equal_the_dense_volume():
     left, right = warp_pair(gt, seed=2)
     refine = [{"name": "subpixel"}, {"name": "uniqueness", "ratio": 0.02}, {"name": "confidence"},
               {"name": "lr_check"}]
-    from stereocli.match.config import validate
+    from stereocli.matching.config import validate
 
     base = {"cost": {"name": "census", "window": [5, 7]}, "optimizer": {"name": "sgm", "paths": 4, "coarse": True},
             "refinement": refine}
@@ -304,7 +304,7 @@ def test_coarse_to_fine_is_deterministic_across_thread_counts():
 
 
 def test_coarse_to_fine_with_aggregation_uses_the_dense_volume():
-    from stereocli.match.config import validate
+    from stereocli.matching.config import validate
 
     gt = np.full((40, 64), 5.0, np.float32)
     left, right = warp_pair(gt)
@@ -326,7 +326,7 @@ def test_valid_masks_are_honoured_by_both_searches(coarse):
     left_valid[:, -6:] = False
     right_valid = np.ones(gt.shape, bool)
     right_valid[:, 20:26] = False  # a band of the right image no left pixel may match
-    from stereocli.match.config import validate
+    from stereocli.matching.config import validate
 
     cfg = validate({"cost": {"name": "census", "window": [5, 7]},
                     "optimizer": {"name": "sgm", "paths": 4, "coarse": coarse == "true"}, "refinement": []}, "<test>")

@@ -8,8 +8,8 @@ import pytest
 
 from stereocli import registry
 from stereocli.errors import ConfigError
-from stereocli.match.kernels import slanted as ksl
-from stereocli.match.state import MatchState
+from stereocli.matching.kernels import slanted as ksl
+from stereocli.matching.state import MatchState
 from test_kernels_sgm import on_one_and_two_threads
 
 INF = np.float32(np.inf)

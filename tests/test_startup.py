@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from stereocli import registry
-from stereocli.match import stages, warmup
+from stereocli.matching import stages, warmup
 
 
 def _python(code: str, **env) -> subprocess.CompletedProcess:
@@ -20,6 +20,19 @@ def _python(code: str, **env) -> subprocess.CompletedProcess:
 
     return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                           env=dict(os.environ, **env))
+
+
+def test_import_stereocli_loads_the_package_alone_and_the_functions_on_first_use():
+    # `import stereocli` stays light (benchmarks/startup.py times it): the public functions, and
+    # numpy, OpenCV and numba with them, load when first used; the command line's Click never.
+    loaded = "import sys\nprint(sorted(m for m in sys.modules if m.split('.')[0] in {})) "
+    heavy = "('stereocli', 'numpy', 'cv2', 'numba', 'yaml', 'click', 'typing')"
+    assert _python("import stereocli\n" + loaded.format(heavy)).stdout.split() == ["['stereocli']"]
+    used = _python("import stereocli\nstereocli.match\nstereocli.evaluate\n" + loaded.format("('numba', 'click')"))
+    assert used.stdout.split() == ["[]"], used.stderr
+    listed = _python("import stereocli\nprint(all(callable(getattr(stereocli, n)) for n in stereocli.__all__ "
+                     "if n != '__version__'))")
+    assert listed.stdout.split() == ["True"], listed.stderr
 
 
 def test_the_catalogue_names_every_stage_and_the_module_that_registers_it():
@@ -30,20 +43,20 @@ def test_the_catalogue_names_every_stage_and_the_module_that_registers_it():
 
 
 def test_a_run_imports_only_the_stage_modules_its_config_names():
-    code = ("import sys, json\nfrom stereocli.match.config import build_config\nbuild_config()\n"
-            "print(json.dumps(sorted(m for m in sys.modules if m.startswith('stereocli.match'))))")
+    code = ("import sys, json\nfrom stereocli.matching.config import build_config\nbuild_config()\n"
+            "print(json.dumps(sorted(m for m in sys.modules if m.startswith('stereocli.matching'))))")
     loaded = set(json.loads(_python(code).stdout))
-    assert {"stereocli.match.preprocess", "stereocli.match.cost", "stereocli.match.optimize.sgm",
-            "stereocli.match.refine"} <= loaded
-    unused = {"stereocli.match.aggregate", "stereocli.match.cost_mi", "stereocli.match.optimize.bp",
-              "stereocli.match.optimize.gc", "stereocli.match.refine_voting", "stereocli.match.refine_local",
-              "stereocli.match.refine_segment"}
+    assert {"stereocli.matching.preprocess", "stereocli.matching.cost", "stereocli.matching.optimize.sgm",
+            "stereocli.matching.refine"} <= loaded
+    unused = {"stereocli.matching.aggregate", "stereocli.matching.cost_mi", "stereocli.matching.optimize.bp",
+              "stereocli.matching.optimize.gc", "stereocli.matching.refine_voting", "stereocli.matching.refine_local",
+              "stereocli.matching.refine_segment"}
     assert not loaded & unused
 
 
 def test_another_stage_loads_its_module_when_named_and_listing_loads_all(run_cli):
-    code = ("import sys\nfrom stereocli.match.config import build_config\n"
-            "build_config(sets=['optimizer.name=bp'])\nprint('stereocli.match.optimize.bp' in sys.modules)")
+    code = ("import sys\nfrom stereocli.matching.config import build_config\n"
+            "build_config(sets=['optimizer.name=bp'])\nprint('stereocli.matching.optimize.bp' in sys.modules)")
     assert _python(code).stdout.strip() == "True"
     listed = run_cli("stages", "--format", "json")
     assert len(listed.json()) == sum(len(n) for kinds in stages.CATALOGUE.values() for n in kinds.values())
@@ -106,7 +119,7 @@ def test_the_compile_notice_says_so_on_stderr_unless_quiet(capsys, monkeypatch):
     from types import SimpleNamespace
 
     from stereocli.cli.main import COMPILE_NOTICE, _compile_notice
-    from stereocli.match.kernels import aot
+    from stereocli.matching.kernels import aot
 
     monkeypatch.setattr(aot, "missing_build_advice", lambda: "")  # an install with its kernels built
     _compile_notice(SimpleNamespace(obj={"verbosity": 0}))
@@ -132,8 +145,8 @@ def test_warm_up_plan_spreads_the_longest_tasks_first():
 
 def test_the_map_tasks_share_the_map_refinements_between_them(monkeypatch):
     # Every map refinement of the default runs in exactly one of the two map tasks.
-    from stereocli.match import pipeline
-    from stereocli.match.config import build_config
+    from stereocli.matching import pipeline
+    from stereocli.matching.config import build_config
 
     ran = {}
     real_finish = pipeline.finish
@@ -154,9 +167,9 @@ def test_the_map_tasks_share_the_map_refinements_between_them(monkeypatch):
 def test_given_coarse_disparities_replace_the_coarse_level(monkeypatch):
     # Handing the fine level the coarse level's own result gives the same map, and the coarse
     # level does not run (the warm-up compiles the two levels in different processes).
-    from stereocli.match.config import build_config
-    from stereocli.match.optimize import sgm as osgm
-    from stereocli.match.pipeline import prepare, run_strip, strip_input
+    from stereocli.matching.config import build_config
+    from stereocli.matching.optimize import sgm as osgm
+    from stereocli.matching.pipeline import prepare, run_strip, strip_input
 
     config = build_config([], ["optimizer.coarse_min_volume=0"])
     left, right = warmup.synthetic_pair(160, 96, 32)
@@ -195,10 +208,10 @@ def test_warmup_command_runs_every_task(run_cli):
 def test_the_warm_up_pair_takes_the_code_path_of_the_real_pair(monkeypatch, sets):
     # The tiny pair matched before a run's first pair must run the kernels that pair runs, or
     # the first pair's time.txt includes loading the others.
-    from stereocli.jobs.match import _tiny_match
-    from stereocli.match.config import build_config, small_twin
-    from stereocli.match.optimize import sgm as osgm
-    from stereocli.match.pipeline import match_pair
+    from stereocli.matching.config import build_config, small_twin
+    from stereocli.matching.optimize import sgm as osgm
+    from stereocli.matching.pipeline import match_pair
+    from stereocli.matching.warmup import tiny_match
 
     windowed = []
     real_windowed = osgm._run_windowed
@@ -208,8 +221,8 @@ def test_the_warm_up_pair_takes_the_code_path_of_the_real_pair(monkeypatch, sets
     match_pair(left, right, config, ndisp=64)
     real = bool(windowed)
     windowed.clear()
-    _tiny_match(small_twin(config, 160, 200, 64), channels=3, dtype=np.dtype(np.uint8), min_disp=0, ndisp=64,
-                masks=False)
+    tiny_match(small_twin(config, 160, 200, 64), channels=3, dtype=np.dtype(np.uint8), min_disp=0, ndisp=64,
+               masks=False)
     assert bool(windowed) == real
     assert real == (sets == ["optimizer.coarse_min_volume=1.0"])  # 160·200·64 = 2.0 M cells
 
@@ -220,16 +233,16 @@ def test_warm_up_processes_import_this_package_whatever_the_working_directory(tm
     # directory first. The decoy's warm-up module fails, so a worker that imports it fails the
     # warm-up.
     decoy = tmp_path / "decoy"
-    (decoy / "stereocli" / "match").mkdir(parents=True)
+    (decoy / "stereocli" / "matching").mkdir(parents=True)
     (decoy / "stereocli" / "__init__.py").write_text("")
-    (decoy / "stereocli" / "match" / "__init__.py").write_text("")
-    (decoy / "stereocli" / "match" / "warmup.py").write_text("raise SystemExit(3)\n")
+    (decoy / "stereocli" / "matching" / "__init__.py").write_text("")
+    (decoy / "stereocli" / "matching" / "warmup.py").write_text("raise SystemExit(3)\n")
     script = tmp_path / "run_warm_up.py"
     script.write_text(
         "import sys\n"
         f"sys.path.insert(0, {str(Path(warmup.__file__).resolve().parents[2])!r})\n"
-        "from stereocli.match import warmup\n"
-        "from stereocli.match.config import build_config\n"
+        "from stereocli.matching import warmup\n"
+        "from stereocli.matching.config import build_config\n"
         "done = []\n"
         "warmup.warm_up({'rt': build_config(['realtime'])}, jobs=2, report=lambda *a: done.append(a[1]))\n"
         "print(sorted(done))\n")

@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from stereocli.match.config import build_config
+from stereocli.matching.config import build_config
 from stereocli.io.images import read_image
-from stereocli.match.pipeline import finish, match_pair, prepare, run_strip, strip_input
+from stereocli.matching.pipeline import finish, match_pair, prepare, run_strip, strip_input
 from stereocli.synth.scenes import write_scene
 
 STRIPS = ["runtime.strip_rows=32", "runtime.strip_overlap=16"]

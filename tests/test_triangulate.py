@@ -12,7 +12,7 @@ from stereocli.errors import DataError
 from stereocli.io.calib import StereoCalibration, load_calibration, save_calibration
 from stereocli.io.middlebury import read_calib_txt
 from stereocli.io.pfm import read_pfm, write_pfm
-from stereocli.triangulate import (RectifiedGeometry, depth_from_disparity, geometry_from_calibration,
+from stereocli.triangulation import (RectifiedGeometry, depth_from_disparity, geometry_from_calibration,
                                    geometry_from_q, reproject_q, triangulate)
 
 
@@ -59,7 +59,7 @@ def test_q_path_agrees_with_opencv():
 
 
 def test_opencv_rectify_q_matches(tmp_path):
-    from stereocli.rectify import rectified_calibration
+    from stereocli.rectification import rectified_calibration
     from stereocli.synth.rig import default_rig
 
     calib = rectified_calibration(default_rig().calibration())

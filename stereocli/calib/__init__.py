@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import os
 
+import numpy as np
+
 from .detect import Detection, detect_all
-from .pattern import Pattern, parse_pattern_size
+from .pattern import Pattern, parse_pattern_size, parse_square
 from .stereo import CalibOptions, CalibrationResult, build_views, calibrate_stereo, format_report
 
-__all__ = ["CalibOptions", "CalibrationResult", "Detection", "Pattern", "calibrate_folder", "detect_all",
-           "format_report", "parse_pattern_size"]
+__all__ = ["CalibOptions", "CalibrationResult", "Detection", "Pattern", "calibrate_folder", "calibrate_pairs",
+           "detect_all", "format_report", "parse_pattern_size", "parse_square"]
 
 
 def calibrate_folder(folder: str | os.PathLike, pattern: Pattern, options: CalibOptions | None = None, *,
@@ -41,5 +43,53 @@ def calibrate_folder(folder: str | os.PathLike, pattern: Pattern, options: Calib
                         + (f" (e.g. {missing[0]['image']}: {missing[0]['reason']})" if missing else ""))
     result = calibrate_stereo(views, size, pattern, options or CalibOptions(), missing=missing,
                               total_pairs=len(pairs))
+    result.report["warnings"] += cache_warnings
+    return result
+
+
+def calibrate_pairs(pairs: list, pattern: Pattern, options: CalibOptions | None = None, *, detector: str = "auto",
+                    jobs: int | None = None, cache: str | os.PathLike | None = None, progress: bool | None = None,
+                    swap: bool = False) -> CalibrationResult:
+    """Detect and calibrate ``pairs``: ``(left, right)`` image paths or arrays (RGB or grey).
+
+    Paths are detected as :func:`calibrate_folder` detects them (in parallel, cached in
+    ``cache``); arrays are named ``pair<i>/left`` and ``pair<i>/right`` in the report.
+    """
+    from ..errors import DataError
+    from .pattern import detect
+
+    named, arrays = [], {}
+    for i, pair in enumerate(pairs):
+        try:
+            left, right = pair
+        except (TypeError, ValueError):
+            raise DataError(f"calibration pair {i}: expected (left, right)") from None
+        keys = []
+        for side, image in (("left", left), ("right", right)):
+            if isinstance(image, (str, os.PathLike)):
+                keys.append(str(image))
+            else:
+                keys.append(f"pair{i}/{side}")
+                arrays[keys[-1]] = image
+        named.append((f"pair{i}", *keys))
+    if swap:
+        named = [(n, r, l) for n, l, r in named]
+    if not named:
+        raise DataError("no calibration pairs given")
+    paths = [p for _, l, r in named for p in (l, r) if p not in arrays]
+    cache_warnings: list[str] = []
+    detections = detect_all(paths, pattern, detector=detector, jobs=jobs, cache=cache, progress=progress,
+                            warnings=cache_warnings)
+    for key, image in arrays.items():
+        image = np.asarray(image)
+        corners, ids, reason = detect(image, pattern, detector=detector)
+        detections[key] = Detection(path=key, size=(image.shape[1], image.shape[0]), corners=corners, ids=ids,
+                                    reason=reason)
+    views, missing, size = build_views(named, detections, pattern)
+    if len(views) < 3:
+        raise DataError(f"the target was found in both images of only {len(views)} pair(s); need at least 3"
+                        + (f" (e.g. {missing[0]['image']}: {missing[0]['reason']})" if missing else ""))
+    result = calibrate_stereo(views, size, pattern, options or CalibOptions(), missing=missing,
+                              total_pairs=len(named))
     result.report["warnings"] += cache_warnings
     return result

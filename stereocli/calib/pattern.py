@@ -100,6 +100,26 @@ def parse_pattern_size(text: str) -> tuple[int, int]:
     return int(m.group(1)), int(m.group(2))
 
 
+_SQUARE = re.compile(r"^\s*([0-9]*\.?[0-9]+(?:[eE][-+]?\d+)?)\s*([a-zA-Zµ]*)\s*$")
+
+
+def parse_square(square: float | str, units: str | None = None) -> tuple[float, str]:
+    """``(side, unit)`` of a square: a number in ``units`` (default ``"unit"``), or a length
+    with its unit like ``"25mm"`` (which ``units``, when given, must agree with)."""
+    if isinstance(square, str):
+        m = _SQUARE.match(square)
+        if not m:
+            raise ConfigError(f"square {square!r}: expected a length like 25mm, 0.025m or 1")
+        if units and m.group(2) and units != m.group(2):
+            raise ConfigError(f"square {square!r} and units {units!r} disagree")
+        value, unit = float(m.group(1)), m.group(2) or units or "unit"
+    else:
+        value, unit = float(square), units or "unit"
+    if not 0 < value < float("inf"):
+        raise ConfigError(f"square must be a positive length, got {square!r}")
+    return value, unit
+
+
 def _to_u8(image: np.ndarray) -> np.ndarray:
     if image.ndim == 3:
         image = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)

@@ -78,6 +78,17 @@ class View:
 
 @dataclass
 class CalibrationResult:
+    """What :func:`stereocli.calibrate` returns.
+
+    Attributes
+    ----------
+    calibration : the rig (K1, D1, K2, D2, R, T, rectified with R1, R2, P1, P2, Q), in the
+        square's unit; save it with :func:`stereocli.io.calib.save_calibration`.
+    report : images without the target and why, stereo / left / right and per-view RMS (px) with
+        outliers flagged, intrinsics, baseline, rotation, rectified epipolar error, warnings (the
+        ``OUT.report.json`` of ``stereocli calibrate``).
+    """
+
     calibration: StereoCalibration
     report: dict = field(default_factory=dict)
 
@@ -242,7 +253,7 @@ def calibrate_stereo(views: list[View], image_size: tuple[int, int], pattern: Pa
 
     calib = StereoCalibration(K1=K1, D1=D1, K2=K2, D2=D2, R=R, T=T, image_size=image_size, rms=float(rms),
                               units=pattern.units, model="fisheye" if opts.fisheye else "pinhole")
-    from ..rectify.maps import rectified_calibration, stereo_rectify
+    from ..rectification.maps import rectified_calibration, stereo_rectify
 
     rect = stereo_rectify(calib, alpha=opts.alpha)
     calib = rectified_calibration(calib, rect=rect)

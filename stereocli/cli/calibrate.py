@@ -95,7 +95,10 @@ def calibrate_cmd(ctx, input_dir, output, pattern_text, square_text, units, patt
       stereocli calibrate photos/ -o rig.yml --pattern 9x6 --square 25mm --fix-k3 --max-view-error 1
       stereocli calibrate photos/ -o rig --to ros --pattern 9x6 --square 0.025m
     """
-    from ..calib import CalibOptions, Pattern, calibrate_folder, format_report, parse_pattern_size
+    from dataclasses import asdict
+
+    from ..api import calibrate
+    from ..calib import CalibOptions, Pattern, format_report, parse_pattern_size
     from ..io.atomic import write_text
     from ..io.calib import save_calibration
 
@@ -131,8 +134,8 @@ def calibrate_cmd(ctx, input_dir, output, pattern_text, square_text, units, patt
     report_path = Path(report_path) if report_path else output.with_name(output.stem + ".report.json")
     check_outputs_free(_output_paths(output, fmt) + [report_path], overwrite=overwrite)
     cache = None if no_cache else (Path(cache_path) if cache_path else output.parent / ".stereocli-detections.json")
-    result = calibrate_folder(input_dir, pattern, opts, detector=detector, jobs=jobs, cache=cache,
-                              progress=None if verbosity >= 0 else False, swap=swap)
+    result = calibrate(input_dir, pattern, detector=detector, jobs=jobs, cache=cache,
+                       progress=None if verbosity >= 0 else False, swap=swap, **asdict(opts))
     written = save_calibration(output, result.calibration, fmt, ndisp=0)
     report = dict(result.report)
     report["outputs"] = [str(p) for p in written]
@@ -169,7 +172,7 @@ def convert_calib_cmd(ctx, src, dst, fmt, alpha, ndisp, overwrite):
       stereocli convert-calib camchain.yaml calib.txt --to middlebury
     """
     from ..io.calib import load_calibration, save_calibration
-    from ..rectify.maps import rectified_calibration
+    from ..rectification.maps import rectified_calibration
 
     dst = Path(dst)
     if fmt is None:

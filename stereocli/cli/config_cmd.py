@@ -17,7 +17,7 @@ def config_group():
 @options.sets
 def show_cmd(config_files, sets):
     """Print the effective config (defaults < --config files < --set) as YAML."""
-    from ..match.config import build_config
+    from ..matching.config import build_config
 
     cfg = build_config(config_files, sets)
     click.echo("# sources: " + ", ".join(cfg.sources))

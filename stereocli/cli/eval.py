@@ -78,7 +78,7 @@ def eval_cmd(ctx: click.Context, results: str, ground_truth: str, fmt: str, data
       stereocli eval out gt/ --scheduler tcp://127.0.0.1:8786 --retries 1
     """
     from ..errors import DataError, check_outputs_free
-    from ..evaluate import EvalOptions, format_table
+    from ..evaluation import EvalOptions, format_table
     from ..io.atomic import write_text
     from ..jobs.evaluate import evaluate
 
@@ -103,13 +103,13 @@ def eval_cmd(ctx: click.Context, results: str, ground_truth: str, fmt: str, data
     if output:
         write_text(output, text)
     if error_maps and report.scenes:
-        from ..evaluate.maps import write_error_maps
+        from ..evaluation.maps import write_error_maps
 
         written = write_error_maps(report, error_maps, overwrite=overwrite)
         if verbosity > 0:
             click.echo(f"wrote {len(written)} error-map images under {error_maps}", err=True)
     if html_dir and report.scenes:
-        from ..evaluate.html import write_html
+        from ..evaluation.html import write_html
 
         path = write_html(report, html_dir, overwrite=overwrite)
         if verbosity >= 0:

@@ -51,7 +51,7 @@ class LazyGroup(click.Group):
 def _show_versions(ctx: click.Context, _param: click.Parameter, value: bool) -> None:
     if not value or ctx.resilient_parsing:
         return
-    from ..match.kernels.aot import describe
+    from ..matching.kernels.aot import describe
     from ..runinfo import versions
 
     for name, version in versions().items():
@@ -105,7 +105,7 @@ def _on_first_compile(ctx: click.Context):
 def _compile_notice(ctx: click.Context) -> None:
     """The first kernel of this run has to compile: say so (unless -q)."""
     if ctx.obj.get("verbosity", 0) >= 0:  # -q: errors only
-        from ..match.kernels.aot import missing_build_advice
+        from ..matching.kernels.aot import missing_build_advice
 
         advice = missing_build_advice()  # an install that lost its compiled kernels says so here
         click.echo(f"stereocli: {advice}" if advice else COMPILE_NOTICE, err=True)
@@ -114,10 +114,10 @@ def _compile_notice(ctx: click.Context) -> None:
 def _warm_up_first_run() -> bool:
     """When a pair is being matched, compile its whole config on every core first (the run
     then loads its kernels from the cache instead of compiling them one by one); True if it did."""
-    pipeline = sys.modules.get("stereocli.match.pipeline")
+    pipeline = sys.modules.get("stereocli.matching.pipeline")
     if pipeline is None or pipeline.current_config() is None:
         return False
-    from ..match.warmup import warm_up_first_run
+    from ..matching.warmup import warm_up_first_run
 
     warm_up_first_run(pipeline.current_config())
     return True

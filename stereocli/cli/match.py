@@ -57,7 +57,7 @@ def match_cmd(ctx, inputs, outdir, config_files, sets, ndisp, min_disp, png16_sc
     from ..errors import ConfigError
     from ..io.pairs import discover_pairs
     from ..jobs.match import match_item, plan_items
-    from ..match.config import build_config
+    from ..matching.config import build_config
     from ..runinfo import versions
 
     verbosity = options.verbosity(ctx)
@@ -90,7 +90,7 @@ def match_cmd(ctx, inputs, outdir, config_files, sets, ndisp, min_disp, png16_sc
 
 def _report_memory(items, config) -> None:
     from ..io.images import read_image
-    from ..match.pipeline import GIB, estimate_memory, plan_strips
+    from ..matching.pipeline import GIB, estimate_memory, plan_strips
 
     for item in items:
         if item.error:

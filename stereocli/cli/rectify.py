@@ -22,7 +22,7 @@ def _size(text: str | None) -> tuple[int, int] | None:
         raise usage_error(f"--size {excerpt(text, quote=True)}: expected WIDTHxHEIGHT, e.g. 1280x960") from None
     if w <= 0 or h <= 0:
         raise usage_error(f"--size {excerpt(text, quote=True)}: width and height must be positive")
-    from ..rectify.maps import MAX_SIDE
+    from ..rectification.maps import MAX_SIDE
 
     if max(w, h) > MAX_SIDE:
         raise usage_error(f"--size {w}x{h}: rectification handles at most {MAX_SIDE} px a side")

@@ -26,7 +26,7 @@ def stages_cmd(ctx, pattern, kind, fmt, long_):
     import json
 
     from .. import registry
-    from ..match import stages as _stages  # noqa: F401  (registers the built-in stages)
+    from ..matching import stages as _stages  # noqa: F401  (registers the built-in stages)
 
     chosen = [s for s in registry.stages(kind) if fnmatch.fnmatch(s.name, pattern)]
     show_traits = options.verbosity(ctx) >= 1

@@ -34,8 +34,8 @@ def warmup_cmd(ctx, config_files, sets, all_presets, jobs):
     import time
 
     from ..config import preset_names
-    from ..match.config import build_config
-    from ..match.warmup import warm_up
+    from ..matching.config import build_config
+    from ..matching.warmup import warm_up
     from ..process import notify_compilation
 
     if all_presets:

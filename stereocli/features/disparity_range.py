@@ -67,15 +67,15 @@ class DisparityRange:
 
 
 @functools.lru_cache(maxsize=8)
-def _coarse_config(speckle: int):
-    from ..match.config import validate
+def _coarse_config(speckle: int, threads: int = 0):
+    from ..matching.config import validate
 
     return validate({
         "cost": {"name": "census", "window": [5, 5]},
         "optimizer": {"name": "sgm", "paths": 4},
         "refinement": [{"name": "uniqueness", "ratio": 0.1}, {"name": "lr_check", "max_diff": 1},
                        {"name": "speckle", "max_size": speckle, "max_diff": 1}],
-        "runtime": {"threads": 0},
+        "runtime": {"threads": threads},
     }, "disparity range estimate")
 
 
@@ -101,10 +101,11 @@ def _textured(image: np.ndarray) -> np.ndarray:
     return variance > 1.0
 
 
-def coarse_disparities(left: np.ndarray, right: np.ndarray, lo: float, hi: float) -> tuple[np.ndarray, int, float]:
+def coarse_disparities(left: np.ndarray, right: np.ndarray, lo: float, hi: float,
+                       threads: int = 0) -> tuple[np.ndarray, int, float]:
     """Confident disparities (px, full resolution) of a coarse dense match searching ``[lo, hi]``
-    px; returns ``(values, scale, valid fraction)``."""
-    from ..match.pipeline import match_pair
+    px on ``threads`` kernel threads (0: one per core); returns ``(values, scale, valid fraction)``."""
+    from ..matching.pipeline import match_pair
 
     h, w = left.shape[:2]
     scale = coarse_scale(w)
@@ -113,7 +114,8 @@ def coarse_disparities(left: np.ndarray, right: np.ndarray, lo: float, hi: float
     lo_c, hi_c = int(np.floor(lo / scale)), int(np.ceil(hi / scale))
     lo_c, hi_c = max(lo_c, -(ws - 1)), min(hi_c, ws - 1)
     speckle = max(20, int(0.005 * small_left.shape[0] * ws))  # isolated blobs under 0.5 % of the image
-    result = match_pair(small_left, small_right, _coarse_config(speckle), min_disp=lo_c, ndisp=hi_c - lo_c + 1)
+    result = match_pair(small_left, small_right, _coarse_config(speckle, threads), min_disp=lo_c,
+                        ndisp=hi_c - lo_c + 1)
     finite = np.isfinite(result.disparity) & _textured(small_left)
     values = result.disparity[finite]
     # A winner at an end of the search is what a mismatch looks like (nothing better in range);
@@ -124,13 +126,16 @@ def coarse_disparities(left: np.ndarray, right: np.ndarray, lo: float, hi: float
     return values * np.float32(w / ws), scale, float(finite.mean())
 
 
-def estimate_range(left: np.ndarray, right: np.ndarray, matches: PointMatches | None = None) -> DisparityRange:
+def estimate_range(left: np.ndarray, right: np.ndarray, matches: PointMatches | None = None, *,
+                   threads: int = 0) -> DisparityRange:
     """Estimate ``[min_disp, min_disp + ndisp)`` for a rectified pair (``(H, W)`` or ``(H, W, 3)``).
 
     ``matches``: sparse matches of the pair (:func:`~stereocli.features.points.match_points`,
     computed here if not given); only those on the same row (|dy − median| ≤ 1 px) count.
     Raises :class:`DataError` when neither the coarse match nor the sparse matches find enough
     texture to decide, and when the pair has too few rows for the coarse match.
+    ``threads``: kernel threads of the coarse match (0: one per core; the range does not depend
+    on it).
     """
     if left.shape[:2] != right.shape[:2]:
         raise DataError("left and right differ in size")
@@ -148,7 +153,7 @@ def estimate_range(left: np.ndarray, right: np.ndarray, matches: PointMatches | 
     lo, hi = -w / 8.0, w / 2.0
     if sparse is not None:
         lo, hi = min(lo, sparse[0] - 16), max(hi, sparse[1] + 16)
-    values, scale, valid = coarse_disparities(left, right, lo, hi)
+    values, scale, valid = coarse_disparities(left, right, lo, hi, threads)
     dense = None
     if valid >= MIN_VALID_FRACTION and len(values):
         dense = tuple(np.percentile(values, [TAIL_PERCENT, 100 - TAIL_PERCENT]))

@@ -20,7 +20,7 @@ from typing import Literal
 import cv2
 import numpy as np
 
-from ..match.kernels import side_by_side
+from ..matching.kernels import side_by_side
 
 #: Largest descriptor distance ratio best / second best of a kept match.
 RATIO = 0.8
@@ -120,7 +120,7 @@ def _nearest(queries: np.ndarray, candidates: np.ndarray, norm: int, *, second: 
     Binary descriptors (``NORM_HAMMING``) by a compiled kernel (popcounts of 64-bit words, no
     Python object per match as OpenCV's brute-force matcher builds); others by that matcher."""
     if norm == cv2.NORM_HAMMING:
-        from ..match.kernels.census import nearest_bit_strings
+        from ..matching.kernels.census import nearest_bit_strings
 
         return nearest_bit_strings(queries, candidates)
     pairs = cv2.BFMatcher(norm).knnMatch(queries, candidates, k=2 if second else 1)

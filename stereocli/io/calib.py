@@ -275,7 +275,7 @@ def _ros_doc(name: str, K, D, R, P, size, model: str) -> str:
 def write_ros(path: str | os.PathLike, calib: StereoCalibration) -> tuple[Path, Path]:
     """Write the ROS ``camera_info`` pair ``<stem>_left.yaml`` / ``<stem>_right.yaml``; returns both paths.
 
-    ``calib`` must be rectified (R1, R2, P1, P2: :func:`stereocli.rectify.rectified_calibration`)
+    ``calib`` must be rectified (R1, R2, P1, P2: :func:`stereocli.rectification.rectified_calibration`)
     and in a known length unit (:data:`UNIT_SCALE`): the projection matrices' translations
     (``P[:, 3]``, ``-fx'·B`` on the right) are written in metres, as ROS reads them.
     """
@@ -521,7 +521,7 @@ def save_calibration(path: str | os.PathLike, calib: StereoCalibration, fmt: str
     """Write ``calib`` as ``fmt`` (``opencv``/``ros``/``middlebury``; default from the extension).
 
     ``ros`` and ``middlebury`` need a rectified calibration
-    (:func:`stereocli.rectify.rectified_calibration`). Returns the written paths (ROS writes two files).
+    (:func:`stereocli.rectification.rectified_calibration`). Returns the written paths (ROS writes two files).
     """
     path = Path(path)
     if fmt is None:

@@ -1,8 +1,8 @@
 """``stereocli eval`` as batch work: a results folder's scenes scored on any executor.
 
 Only paths travel to the workers (:func:`eval_item`); each returns its scene's outcome
-(:func:`stereocli.evaluate.api.score_scene`), and the report is assembled in GT-scene order
-(:func:`stereocli.evaluate.api.folder_report`), so it is the same whichever executor ran the
+(:func:`stereocli.evaluation.api.score_scene`), and the report is assembled in GT-scene order
+(:func:`stereocli.evaluation.api.folder_report`), so it is the same whichever executor ran the
 scenes.
 """
 
@@ -11,9 +11,9 @@ from __future__ import annotations
 import os
 from typing import Any, Sequence
 
+from ..api import evaluate as evaluate_inputs
 from ..errors import Interrupted
-from ..evaluate.api import EvalOptions, EvalReport, SceneScorer, SceneTask, score_scene
-from ..evaluate.api import evaluate as evaluate_inputs
+from ..evaluation.api import EvalOptions, EvalReport, SceneScorer, SceneTask, score_scene
 from .executors import run_batch
 from .items import WorkItem
 
@@ -30,7 +30,7 @@ def plan_items(tasks: Sequence[SceneTask], options: EvalOptions) -> list[WorkIte
 
 
 def eval_item(item: WorkItem) -> dict[str, Any]:
-    """Score one scene; returns its :func:`~stereocli.evaluate.api.score_scene` outcome."""
+    """Score one scene; returns its :func:`~stereocli.evaluation.api.score_scene` outcome."""
     task = SceneTask(item.name, item.options["kind"], item.inputs["gt"], item.inputs["result"],
                      item.inputs.get("time"))
     return score_scene(task, item.options["eval_options"])
@@ -68,7 +68,7 @@ def evaluate(
     progress: bool | None = None,
     verbose_errors: bool = False,
 ) -> EvalReport:
-    """:func:`stereocli.evaluate.evaluate` with folder-mode scenes on an executor.
+    """:func:`stereocli.evaluate` with folder-mode scenes on an executor.
 
     ``jobs``, ``scheduler``, ``retries``, ``executor``, ``progress``: as in
     :func:`~stereocli.jobs.executors.run_batch` (in-process by default; ``jobs > 1`` a process

@@ -49,7 +49,7 @@ def _outputs(folder: Path, check: bool, *more: str) -> dict[str, str]:
 
 def _maps_for(calib_path: str, alpha: float, size):
     from ..io.calib import load_calibration
-    from ..rectify.maps import build_maps
+    from ..rectification.maps import build_maps
 
     p = Path(calib_path)
     key = (str(p.resolve()), p.stat().st_mtime_ns, alpha, tuple(size) if size else None)
@@ -60,38 +60,13 @@ def _maps_for(calib_path: str, alpha: float, size):
     return _MAPS_CACHE[key]
 
 
-def _rectified_range(left, right, rect, opts: dict) -> tuple[int, dict]:
-    """``ndisp`` for the rectified pair's calib.txt and where it came from.
-
-    ``--ndisp`` wins. Otherwise the range is estimated from the rectified images
-    (:func:`~stereocli.features.disparity_range.estimate_range`; rectification puts infinity at
-    disparity 0, so calib.txt's ``[0, ndisp)`` is rounded up to a multiple of 16 to reach the
-    estimate's far end), at least ``f·B / --min-depth`` when that is given. A pair without
-    enough texture falls back to the depth rule alone (a quarter of the width without
-    ``--min-depth``).
-    """
-    from ..features.disparity_range import estimate_range
-    from ..rectify.maps import estimate_ndisp
-
-    if opts["ndisp"]:
-        return int(opts["ndisp"]), {"source": "option"}
-    by_depth = estimate_ndisp(rect, min_depth=opts["min_depth"]) if opts["min_depth"] else 0
-    try:
-        estimate = estimate_range(left, right)
-    except DataError as exc:
-        return estimate_ndisp(rect, min_depth=opts["min_depth"]), {"source": "depth", "note": str(exc)}
-    ndisp = max(16 * -(-(estimate.max_disp + 1) // 16), by_depth)
-    return ndisp, {"source": "estimated", "min_disp": estimate.min_disp, "max_disp": estimate.max_disp,
-                   "evidence": estimate.as_dict()}
-
-
 def rectify_item(item: WorkItem) -> dict:
-    """Rectify one pair (see the module docstring for outputs); returns run-record details."""
-    from ..io.calib import to_middlebury
+    """Rectify one pair (:func:`stereocli.rectify`; see the module docstring for outputs);
+    returns run-record details."""
+    from ..api import rectify
     from ..io.exif import orientation_note
     from ..io.images import read_image, write_image
     from ..io.middlebury import write_calib_txt
-    from ..rectify.maps import check_image, rectified_calibration, rectify_images
 
     opts = item.options
     calib, maps = _maps_for(item.inputs["calibration"], opts["alpha"], opts["size"])
@@ -102,25 +77,30 @@ def rectify_item(item: WorkItem) -> dict:
             raise DataError(f"{path}: image is {im.shape[1]}x{im.shape[0]} but the calibration is for {w}x{h}")
     if maps.rect.vertical:
         raise DataError(f"{item.inputs['calibration']}: vertical rig; stereocli rectifies horizontal pairs only")
-    r0, r1 = rectify_images(left, right, maps, interpolation=opts["interpolation"])
-    rect = maps.rect
-    ndisp, span = _rectified_range(r0, r1, rect, opts)
-    mb = to_middlebury(rectified_calibration(calib, rect=rect), ndisp=ndisp)
-    if span.get("evidence"):
-        mb.vmin, mb.vmax = float(max(0, span["min_disp"])), float(span["max_disp"])
+    result = rectify(left, right, calib, interpolation=opts["interpolation"], ndisp=opts["ndisp"],
+                     min_depth=opts["min_depth"], maps=maps)
+    rect, mb = result.rectification, result.calib_txt
     out = item.outputs
-    write_image(out["im0"], r0)
-    write_image(out["im1"], r1)
-    write_image(out["valid0"], maps.valid1)
-    write_image(out["valid1"], maps.valid2)
+    write_image(out["im0"], result.left)
+    write_image(out["im1"], result.right)
+    write_image(out["valid0"], _mask_image(result.left_valid))
+    write_image(out["valid1"], _mask_image(result.right_valid))
     write_calib_txt(out["calib"], mb)
     if "check" in out:
-        write_image(out["check"], check_image(r0, r1, rect))
+        write_image(out["check"], result.check_image())
+    span = dict(result.range, source="option") if result.range["source"] == "given" else result.range
     notes = [n for n in (orientation_note(item.inputs["left"]), orientation_note(item.inputs["right"])) if n]
     return {"size": list(rect.size), "f": float(rect.P1[0, 0]), "baseline_mm": mb.baseline, "doffs": mb.doffs,
-            "ndisp": ndisp, "range": span, "roi_left": list(rect.roi1), "roi_right": list(rect.roi2),
-            "valid_fraction_left": float((maps.valid1 > 0).mean()),
-            "valid_fraction_right": float((maps.valid2 > 0).mean()), **({"warnings": notes} if notes else {})}
+            "ndisp": result.ndisp, "range": span, "roi_left": list(rect.roi1), "roi_right": list(rect.roi2),
+            "valid_fraction_left": float(result.left_valid.mean()),
+            "valid_fraction_right": float(result.right_valid.mean()), **({"warnings": notes} if notes else {})}
+
+
+def _mask_image(valid):
+    """A valid mask as ``valid0.png`` holds it: uint8, 255 valid, 0 not."""
+    import numpy as np
+
+    return np.where(valid, np.uint8(255), np.uint8(0))
 
 
 # --------------------------------------------------------------------------- without a calibration
@@ -168,7 +148,7 @@ def estimate_uncalibrated(items: list[WorkItem], *, per_pair: bool = False) -> d
     ``per_pair`` one per item) and store them in each item's options; an item that cannot be
     rectified gets its ``error`` (it fails alone). Returns the report of every estimate."""
     from ..errors import StereoError
-    from ..rectify.uncalibrated import estimate_rectification
+    from ..rectification.uncalibrated import estimate_rectification
 
     groups = [[item] for item in items] if per_pair else [items]
     rigs = []
@@ -196,40 +176,30 @@ def estimate_uncalibrated(items: list[WorkItem], *, per_pair: bool = False) -> d
     return {"homographies": "one per pair" if per_pair else "one for all pairs", "rigs": rigs}
 
 
-def uncalibrated_calib_txt(rect, ndisp: int, min_disp: int, max_disp: int):
-    """The Middlebury calib.txt of an uncalibrated rectification ``rect``: the rectified views'
-    virtual cameras (``doffs`` = where infinity would be if their focal length were right), the
-    size and the disparity range; no baseline (0), and ``rectification=uncalibrated`` says why."""
-    from ..io.middlebury import MiddleburyCalib
-
-    return MiddleburyCalib(cam0=rect.camera0, cam1=rect.camera1, doffs=float(rect.camera1[0, 2] - rect.camera0[0, 2]),
-                           baseline=0.0, width=int(rect.size[0]), height=int(rect.size[1]), ndisp=int(ndisp), isint=0,
-                           vmin=float(min_disp), vmax=float(max_disp), extra={"rectification": "uncalibrated"})
-
-
 def rectify_uncalibrated_item(item: WorkItem) -> dict:
     """Warp one pair by the homographies :func:`estimate_uncalibrated` stored in its options."""
     import json
     import re
 
+    from ..api import rectify
     from ..io.atomic import write_text
     from ..io.images import read_image, write_image
     from ..io.middlebury import write_calib_txt
-    from ..rectify.maps import check_image, inner_box
-    from ..rectify.uncalibrated import UncalibratedRectification, warp_pair
+    from ..rectification.uncalibrated import UncalibratedRectification
 
     opts = item.options
     rect = UncalibratedRectification.from_dict(opts["rectification"])
     left, right = read_image(item.inputs["left"]), read_image(item.inputs["right"])
-    r0, r1, valid0, valid1 = warp_pair(left, right, rect, interpolation=opts["interpolation"])
     span = opts["range"]
-    ndisp = int(opts["ndisp"] or 16 * -(-(span["max_disp"] + 1) // 16))
+    result = rectify(left, right, rect, interpolation=opts["interpolation"], ndisp=opts["ndisp"],
+                     disparity_range=(span["min_disp"], span["max_disp"]))
+    ndisp, valid0, valid1 = result.ndisp, result.left_valid, result.right_valid
     out = item.outputs
-    write_image(out["im0"], r0)
-    write_image(out["im1"], r1)
-    write_image(out["valid0"], valid0)
-    write_image(out["valid1"], valid1)
-    write_calib_txt(out["calib"], uncalibrated_calib_txt(rect, ndisp, span["min_disp"], span["max_disp"]))
+    write_image(out["im0"], result.left)
+    write_image(out["im1"], result.right)
+    write_image(out["valid0"], _mask_image(valid0))
+    write_image(out["valid1"], _mask_image(valid1))
+    write_calib_txt(out["calib"], result.calib_txt)
     record = {**opts["rectification"], "convention": "H0, H1: original pixel (x, y, 1) -> rectified pixel; "
               "pixel centres at integer coordinates", "rig": opts["rig"], "pair": opts["pair"], "range": span,
               "ndisp": ndisp}
@@ -238,10 +208,10 @@ def rectify_uncalibrated_item(item: WorkItem) -> dict:
                   json.dumps(record, indent=2))
     write_text(out["rectification"], text + "\n")
     if "check" in out:
-        write_image(out["check"], check_image(r0, r1, rois=(inner_box(valid0), inner_box(valid1))))
+        write_image(out["check"], result.check_image())
     details = {"size": list(rect.size), "ndisp": ndisp, "range": {k: span[k] for k in ("min_disp", "max_disp")},
                **opts["pair"], "distortion": opts["rectification"]["distortion"],
-               "valid_fraction_left": float((valid0 > 0).mean()), "valid_fraction_right": float((valid1 > 0).mean())}
+               "valid_fraction_left": float(valid0.mean()), "valid_fraction_right": float(valid1.mean())}
     pair = opts["pair"]
     if len(opts["rig"]["pairs"]) > 1 and (not pair["fits"] or (pair["dy_median"] or 0) > RIG_DY_WARNING):
         details["warnings"] = [f"only {pair['inliers']} of {pair['matches']} matches fit the rig's homographies "

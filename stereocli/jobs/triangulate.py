@@ -127,75 +127,37 @@ def plan_items(inputs: list[str] | tuple[str, ...], output: str, *, calib: str |
     return items, problems
 
 
-def _refuse_uncalibrated(path: str) -> None:
-    """The calib.txt of ``rectify --uncalibrated`` has no baseline (and only a guessed focal
-    length): no depth can come from it."""
-    if Path(path).suffix.lower() == ".txt":
-        from ..io.middlebury import read_calib_txt
-
-        if read_calib_txt(path).extra.get("rectification") == "uncalibrated":
-            raise DataError(f"{path}: written by rectify --uncalibrated (no baseline); triangulate needs a "
-                            "calibration: calibrate the rig and rectify with --calib")
-
-
 def triangulate_item(item: WorkItem) -> dict:
-    """Read disparity, calibration, image; write cloud, depth and summary; returns the summary."""
+    """Triangulate one disparity map (:func:`stereocli.triangulate`); write cloud, depth and
+    summary; returns the summary."""
+    from ..api import triangulate
     from ..io.atomic import atomic_path, write_text
-    from ..io.calib import load_calibration
-    from ..io.images import read_disparity, read_image
     from ..io.ply import write_ply
-    from ..triangulate import (FRAME, depth_from_disparity, geometry_from_calibration, summarize, triangulate,
-                               write_depth, write_depth_png16_mm)
+    from ..triangulation import FRAME, write_depth, write_depth_png16_mm
 
     o = item.options
-    _refuse_uncalibrated(item.inputs["calibration"])
-    disp = read_disparity(item.inputs["disparity"], scale=o.get("scale"))
-    calib = load_calibration(item.inputs["calibration"])
-    geom = geometry_from_calibration(calib, use_q=o.get("use_q", False))
-    if o.get("units"):
-        geom = geom.scaled(o["units"])
-    size = calib.rectified_size or calib.image_size
-    if size and all(size) and tuple(size) != (disp.shape[1], disp.shape[0]):
-        raise DataError(f"{item.inputs['disparity']}: disparity is {disp.shape[1]}x{disp.shape[0]} but "
-                        f"{item.inputs['calibration']} is for {size[0]}x{size[1]}")
-    image = read_image(item.inputs["image"]) if "image" in item.inputs and o.get("color", True) else None
-    if image is not None and image.shape[:2] != disp.shape:
-        raise DataError(f"{item.inputs['image']}: image is {image.shape[1]}x{image.shape[0]} but the disparity "
-                        f"{item.inputs['disparity']} is {disp.shape[1]}x{disp.shape[0]}")
-    conf = None
-    if "confidence" in item.inputs:
-        conf = read_disparity(item.inputs["confidence"], kind="confidence")
-        conf = np.where(np.isfinite(conf), conf, 0).astype(np.float32)
-    if not np.isfinite(disp).any():
-        raise DataError(f"{item.inputs['disparity']}: every disparity is invalid (+inf); nothing to triangulate")
-    depth, cloud = triangulate(disp, geom, image=image, confidence=conf, normals=o.get("normals", False),
-                               stride=o.get("stride", 1), min_depth=o.get("min_depth"), max_depth=o.get("max_depth"))
-    if cloud.points.shape[0] == 0:
-        depth_all = depth_from_disparity(disp, geom)
-        if not np.isfinite(depth_all).any():
-            raise DataError(f"{item.inputs['disparity']}: no valid depth: every disparity d has d + doffs <= 0 "
-                            f"(doffs {geom.doffs:g} px)")
-        if o.get("min_depth") is None and o.get("max_depth") is None:
-            raise DataError(f"{item.inputs['disparity']}: no valid pixel on the --stride {o.get('stride', 1)} grid")
-        span = summarize(depth_all, cloud, geom)
-        raise DataError(f"{item.inputs['disparity']}: no point left after --min-depth/--max-depth "
-                        f"(valid depths span {span.get('depth_min')}..{span.get('depth_max')} {geom.units})")
+    image = item.inputs["image"] if "image" in item.inputs and o.get("color", True) else None
+    result = triangulate(item.inputs["disparity"], item.inputs["calibration"], image=image,
+                         confidence=item.inputs.get("confidence"), units=o.get("units"), use_q=o.get("use_q", False),
+                         min_depth=o.get("min_depth"), max_depth=o.get("max_depth"), stride=o.get("stride", 1),
+                         normals=o.get("normals", False), scale=o.get("scale"))
+    geom = result.geometry
     out = item.outputs
     comments = [f"stereocli triangulate: units {geom.units}; frame {FRAME}",
                 f"Z = f*B/(d + doffs), f {geom.f:.6g} px, B {geom.baseline:.6g} {geom.units}, doffs {geom.doffs:.6g} px, "
                 f"cx {geom.cx:.6g}, cy {geom.cy:.6g}"]
     if out["cloud"].lower().endswith(".npy"):
         with atomic_path(out["cloud"]) as tmp, open(tmp, "wb") as fh:
-            np.save(fh, cloud.points)
+            np.save(fh, result.points)
     else:
-        write_ply(out["cloud"], cloud.points, colors=cloud.colors, normals=cloud.normals,
-                  confidence=cloud.confidence, comments=comments, ascii=o.get("ascii", False))
+        write_ply(out["cloud"], result.points, colors=result.colors, normals=result.normals,
+                  confidence=result.confidence, comments=comments, ascii=o.get("ascii", False))
     if "depth" in out:
-        write_depth(out["depth"], depth)
+        write_depth(out["depth"], result.depth)
     clipped = 0
     if "depth_png16" in out:
-        clipped = write_depth_png16_mm(out["depth_png16"], depth, geom.units)
-    info = summarize(depth, cloud, geom)
+        clipped = write_depth_png16_mm(out["depth_png16"], result.depth, geom.units)
+    info = result.summary()
     if clipped:
         info["depth_png16_unrepresentable"] = clipped
     if "summary" in out:
