@@ -58,12 +58,14 @@ def match_cmd(ctx, inputs, outdir, config_files, sets, ndisp, min_disp, png16_sc
     from ..io.pairs import discover_pairs
     from ..jobs.match import match_item, plan_items
     from ..match.config import build_config
+    from ..process import keep_freed_memory_within
     from ..runinfo import versions
 
     verbosity = options.verbosity(ctx)
     if split_strips and not scheduler:
         raise ConfigError("--split-strips spreads strips over Dask workers: give --scheduler tcp://HOST:PORT or local")
     config = build_config(config_files, sets)
+    keep_freed_memory_within(config.runtime.memory_gb)  # process-wide: a smaller budget keeps less freed memory
     effective = config.as_dict()
     pairs, problems = discover_pairs(inputs)
     items = plan_items(pairs, outdir, config=effective, ndisp=ndisp, min_disp=min_disp, png16_scale=png16_scale,
