@@ -91,26 +91,23 @@ def match_cmd(ctx, inputs, outdir, config_files, sets, ndisp, min_disp, png16_sc
 
 
 def _report_memory(items, config) -> None:
-    from ..io.images import read_image
-    from ..match.pipeline import GIB, estimate_memory, plan_strips
+    from ..jobs.match import memory_plan
+    from ..match.pipeline import GIB
 
     for item in items:
         if item.error:
             continue  # reported as the item's failure
         try:
-            h, w = read_image(item.inputs["left"], gray=True).shape[:2]
-        except Exception:  # noqa: BLE001 - reported properly when the item runs
-            continue
-        nd = item.options["ndisp"]
-        if nd is None:
-            click.echo(f"{item.name}: {w}x{h}, disparity range estimated when the pair runs", err=True)
-            continue
-        whole = estimate_memory(config, h, w, nd) / GIB
-        try:
-            strips = plan_strips(config, h, w, nd)
-            rows = strips[0][1] - strips[0][0] + 2 * (config.runtime.strip_overlap if len(strips) > 1 else 0)
-            peak = estimate_memory(config, min(h, rows), w, nd) / GIB
-            click.echo(f"{item.name}: {w}x{h}, ndisp {nd}: estimated memory {whole:.2f} GiB whole image; "
-                       f"{len(strips)} strip(s), peak ~{peak:.2f} GiB (budget {config.runtime.memory_gb:g} GiB)", err=True)
-        except Exception as exc:  # noqa: BLE001
+            plan = memory_plan(item, config)  # from the images' headers: nothing is decoded
+        except Exception as exc:  # noqa: BLE001 - the item fails with it when it runs
             click.echo(f"{item.name}: {exc}", err=True)
+            continue
+        if plan is None:
+            continue  # a header it cannot read: the item reports its images when it runs
+        size = f"{item.name}: {plan.width}x{plan.height}"
+        if plan.estimate is None:
+            click.echo(f"{size}, disparity range estimated when the pair runs; at least {plan.least / GIB:.2f} GiB "
+                       f"(budget {config.runtime.memory_gb:g} GiB)", err=True)
+            continue
+        click.echo(f"{size}, ndisp {item.options['ndisp']}: {plan.strips} strip(s), estimated peak "
+                   f"{plan.estimate / GIB:.2f} GiB (budget {config.runtime.memory_gb:g} GiB)", err=True)
