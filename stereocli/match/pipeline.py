@@ -426,7 +426,7 @@ def finish(prepared: PreparedPair, results: Iterable[StripResult], config: Pipel
 
     ``results`` may be an iterator: each strip's rows are copied into the whole maps as it
     comes, so strips made on demand are never all held at once. A plan of one strip takes its
-    maps as they are.
+    maps as they are (without a copy: the map stages may edit them).
     """
     state = prepared.state
     shape = state.shape
