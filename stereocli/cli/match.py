@@ -91,6 +91,7 @@ def match_cmd(ctx, inputs, outdir, config_files, sets, ndisp, min_disp, png16_sc
 
 
 def _report_memory(items, config) -> None:
+    from ..jobs.items import label_message
     from ..jobs.match import memory_plan
     from ..match.pipeline import GIB
 
@@ -100,7 +101,7 @@ def _report_memory(items, config) -> None:
         try:
             plan = memory_plan(item, config)  # from the images' headers: nothing is decoded
         except Exception as exc:  # noqa: BLE001 - the item fails with it when it runs
-            click.echo(f"{item.name}: {exc}", err=True)
+            click.echo(label_message(item.name, str(exc)), err=True)
             continue
         if plan is None:
             continue  # a header it cannot read: the item reports its images when it runs
