@@ -142,12 +142,16 @@ class StageTraits:
     #: ``f(params, width, ndisp) -> bytes``: fixed buffers per row strip (memory planner).
     buffer_bytes: Callable | None = None
 
-    # -- memory (every stage that holds volumes) ----------------------------------------------
+    # -- memory (the planner: volumes of every stage that holds them, whole-image maps) -------
     #: Extra (H, W, D) float32-sized volumes held beside the input (a uint16 copy counts 0.5);
     #: None: 0 for a cost stage (just its output), 1 for the others.
     volume_copies: float | None = None
     #: ``volume_copies`` when the input is the cost stage's integer volume.
     integer_volume_copies: float | None = None
+    #: Preprocess and map-refinement stages (they see the whole image): extra (H, W) float32
+    #: maps the stage holds at its peak beside the pair's views and maps; a preprocess stage's
+    #: count is per channel of the views (3 for colour views). None: 3.
+    map_copies: float | None = None
 
     def declared(self) -> dict[str, Any]:
         """The fields that differ from the defaults (what ``stereocli stages -v`` prints)."""

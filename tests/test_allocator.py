@@ -34,3 +34,12 @@ def test_the_command_line_applies_it():
     code = ("import stereocli.process as p; from click.testing import CliRunner; from stereocli.cli.main import cli; "
             "CliRunner().invoke(cli, ['stages', 'census']); print(p._applied)")
     assert _run(code) == ("True" if GLIBC else "False")
+
+
+def test_a_small_budget_keeps_less_here_and_in_the_workers_it_starts():
+    code = ("import os, stereocli.process as p; "
+            "print(p.keep_freed_memory_within({}), os.environ.get('STEREOCLI_KEEP_FREED_MEMORY'))")
+    if GLIBC:
+        assert _run(code.format(1.0)) == f"True {2**30 // 256}"  # 1/256 of 1 GiB
+        assert _run(code.format(8.0)) == "True None"  # the default budget keeps the default setting
+    assert _run(code.format(1.0), "0") == "False 0"  # the user's setting wins

@@ -58,12 +58,14 @@ def match_cmd(ctx, inputs, outdir, config_files, sets, ndisp, min_disp, png16_sc
     from ..io.pairs import discover_pairs
     from ..jobs.match import match_item, plan_items
     from ..matching.config import build_config
+    from ..process import keep_freed_memory_within
     from ..runinfo import versions
 
     verbosity = options.verbosity(ctx)
     if split_strips and not scheduler:
         raise ConfigError("--split-strips spreads strips over Dask workers: give --scheduler tcp://HOST:PORT or local")
     config = build_config(config_files, sets)
+    keep_freed_memory_within(config.runtime.memory_gb)  # process-wide: a smaller budget keeps less freed memory
     effective = config.as_dict()
     pairs, problems = discover_pairs(inputs)
     items = plan_items(pairs, outdir, config=effective, ndisp=ndisp, min_disp=min_disp, png16_scale=png16_scale,
@@ -89,26 +91,24 @@ def match_cmd(ctx, inputs, outdir, config_files, sets, ndisp, min_disp, png16_sc
 
 
 def _report_memory(items, config) -> None:
-    from ..io.images import read_image
-    from ..matching.pipeline import GIB, estimate_memory, plan_strips
+    from ..jobs.items import label_message
+    from ..jobs.match import memory_plan
+    from ..matching.pipeline import GIB
 
     for item in items:
         if item.error:
             continue  # reported as the item's failure
         try:
-            h, w = read_image(item.inputs["left"], gray=True).shape[:2]
-        except Exception:  # noqa: BLE001 - reported properly when the item runs
+            plan = memory_plan(item, config)  # from the images' headers: nothing is decoded
+        except Exception as exc:  # noqa: BLE001 - the item fails with it when it runs
+            click.echo(label_message(item.name, str(exc)), err=True)
             continue
-        nd = item.options["ndisp"]
-        if nd is None:
-            click.echo(f"{item.name}: {w}x{h}, disparity range estimated when the pair runs", err=True)
+        if plan is None:
+            continue  # a header it cannot read: the item reports its images when it runs
+        size = f"{item.name}: {plan.width}x{plan.height}"
+        if plan.estimate is None:
+            click.echo(f"{size}, disparity range estimated when the pair runs; at least {plan.least / GIB:.2f} GiB "
+                       f"(budget {config.runtime.memory_gb:g} GiB)", err=True)
             continue
-        whole = estimate_memory(config, h, w, nd) / GIB
-        try:
-            strips = plan_strips(config, h, w, nd)
-            rows = strips[0][1] - strips[0][0] + 2 * (config.runtime.strip_overlap if len(strips) > 1 else 0)
-            peak = estimate_memory(config, min(h, rows), w, nd) / GIB
-            click.echo(f"{item.name}: {w}x{h}, ndisp {nd}: estimated memory {whole:.2f} GiB whole image; "
-                       f"{len(strips)} strip(s), peak ~{peak:.2f} GiB (budget {config.runtime.memory_gb:g} GiB)", err=True)
-        except Exception as exc:  # noqa: BLE001
-            click.echo(f"{item.name}: {exc}", err=True)
+        click.echo(f"{size}, ndisp {item.options['ndisp']}: {plan.strips} strip(s), estimated peak "
+                   f"{plan.estimate / GIB:.2f} GiB (budget {config.runtime.memory_gb:g} GiB)", err=True)

@@ -25,6 +25,7 @@ import numpy as np
 from ..errors import ConfigError, DataError
 from ..io.images import IMAGE_SUFFIXES, read_disparity, read_image
 from ..io.middlebury import read_calib_txt
+from ..io.text import read_text_limited
 from .metrics import derive_nonocc_mask
 
 DATASETS = ("middlebury2014", "middlebury2003", "middlebury2001", "kitti")
@@ -422,7 +423,7 @@ def read_time(path: Path | None) -> float | None:
     if path is None:
         return None
     try:
-        return float(path.read_text().split()[0])
+        return float(read_text_limited(path, "time file").split()[0])
     except (OSError, ValueError, IndexError):
         raise DataError(f"{path}: not a time file (one number of seconds expected)") from None
 

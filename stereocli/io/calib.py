@@ -37,6 +37,7 @@ import numpy as np
 from ..errors import ConfigError, DataError, excerpt
 from .atomic import atomic_path, write_text
 from .middlebury import MiddleburyCalib, format_calib_txt, read_calib_txt
+from .text import check_text_size, read_text_limited
 
 OPENCV_SUFFIXES = (".yml", ".yaml", ".xml", ".json")
 FORMATS = ("opencv", "ros", "middlebury")
@@ -187,6 +188,7 @@ def read_opencv(path: str | os.PathLike) -> StereoCalibration:
     import cv2
 
     path = Path(path)
+    check_text_size(path, "calibration file")
     fs = _fs_open(path, cv2.FILE_STORAGE_READ)
     try:
         root = fs.root()
@@ -303,7 +305,7 @@ def _yaml_docs(path: Path) -> list:
     from ..config import check_yaml_limits
 
     try:
-        text = path.read_text()
+        text = read_text_limited(path, "calibration file")
     except (OSError, UnicodeDecodeError) as exc:
         raise DataError(f"{path}: cannot read ({exc})") from None
     try:
@@ -455,9 +457,11 @@ def detect_format(path: str | os.PathLike) -> str:
         if suffix in (".yaml", ".yml") and left.is_file():
             return "ros"
         raise DataError(f"{path}: no such file")
+    check_text_size(path, "calibration file")
     if suffix in (".xml", ".json"):
         return "opencv"
-    head = path.read_bytes()[:4096]
+    with open(path, "rb") as fh:
+        head = fh.read(4096)
     if head.startswith(b"%YAML") or b"!!opencv-matrix" in head:
         return "opencv"
     if b"camera_matrix" in head and b"projection_matrix" in head:

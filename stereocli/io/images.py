@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import os
+import re
+import struct
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -26,6 +29,7 @@ def read_image(path: str | os.PathLike, *, gray: bool = False) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise DataError(f"{path}: no such file")
+    check_decodable(path, read_image_header(path))
     data = np.fromfile(path, dtype=np.uint8)
     if data.size == 0:
         raise DataError(f"{path}: empty file")
@@ -46,6 +50,157 @@ def read_image(path: str | os.PathLike, *, gray: bool = False) -> np.ndarray:
             image = image[..., :3]
         image = cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
     return image
+
+
+def _opencv_limit(name: str, default: int) -> int:
+    value = os.environ.get(name, "")
+    return int(value) if value.isdigit() else default
+
+
+#: OpenCV's decoding limits (its ``CV_IO_MAX_IMAGE_PIXELS``, ``_WIDTH`` and ``_HEIGHT`` settings).
+OPENCV_MAX_PIXELS = _opencv_limit("CV_IO_MAX_IMAGE_PIXELS", 1 << 30)
+OPENCV_MAX_SIDE = min(_opencv_limit(f"CV_IO_MAX_IMAGE_{side}", 1 << 20) for side in ("WIDTH", "HEIGHT"))
+
+
+@dataclass(frozen=True)
+class ImageHeader:
+    """What an image file declares in its header, read without decoding the pixels."""
+
+    width: int
+    height: int
+    channels: int  # samples per pixel as OpenCV decodes the file (alpha included)
+    itemsize: int  # bytes per sample: 1 (8-bit), 2 (16-bit) or 4 (float32)
+
+    @property
+    def decoded_bytes(self) -> int:
+        """Bytes of the array OpenCV decodes (before :func:`read_image` drops an alpha channel)."""
+        return self.width * self.height * self.channels * self.itemsize
+
+    @property
+    def image_bytes(self) -> int:
+        """Bytes of the array :func:`read_image` returns (RGB or grey)."""
+        return self.width * self.height * min(self.channels, 3) * self.itemsize
+
+
+def read_image_header(path: str | os.PathLike) -> ImageHeader | None:
+    """The size and sample layout a PNG, JPEG, TIFF, BMP, WebP, PNM or PFM file declares, from
+    its first bytes (and a TIFF's first directory); None for another format, a header this
+    cannot parse or a file it cannot open (decoding then reports what is wrong)."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(64)
+            for probe in (_png_header, _jpeg_header, _tiff_header, _bmp_header, _webp_header, _pnm_header):
+                header = probe(head, fh)
+                if header is not None:
+                    return header if header.width > 0 and header.height > 0 else None
+    except (OSError, ValueError, IndexError, KeyError, struct.error):
+        return None
+    return None
+
+
+def check_decodable(path: str | os.PathLike, header: ImageHeader | None) -> None:
+    """Raise :class:`DataError` naming the file when its header declares more pixels than
+    OpenCV decodes."""
+    if header is not None and (header.width * header.height > OPENCV_MAX_PIXELS
+                               or max(header.width, header.height) > OPENCV_MAX_SIDE):
+        raise DataError(f"{path}: the header declares {header.width}x{header.height} pixels, more than OpenCV "
+                        f"decodes (at most {OPENCV_MAX_PIXELS} pixels, {OPENCV_MAX_SIDE} a side)")
+
+
+def _png_header(head: bytes, fh) -> ImageHeader | None:
+    if not head.startswith(b"\x89PNG\r\n\x1a\n") or head[12:16] != b"IHDR":
+        return None
+    width, height, depth, colour = struct.unpack(">IIBB", head[16:26])
+    # Palettes decode to BGR, grey with alpha to BGRA.
+    channels = {0: 1, 2: 3, 3: 3, 4: 4, 6: 4}[colour]
+    return ImageHeader(width, height, channels, 2 if depth == 16 else 1)
+
+
+def _jpeg_header(head: bytes, fh) -> ImageHeader | None:
+    if not head.startswith(b"\xff\xd8"):
+        return None
+    fh.seek(2)
+    while True:
+        marker = fh.read(2)
+        while marker[1:] == b"\xff":  # fill bytes
+            marker = marker[1:] + fh.read(1)
+        if len(marker) < 2 or marker[0] != 0xFF:
+            raise ValueError("no frame header")
+        kind = marker[1]
+        if kind in (0x01, *range(0xD0, 0xD8)):  # markers without a segment
+            continue
+        (length,) = struct.unpack(">H", fh.read(2))
+        if length < 2:
+            raise ValueError("bad segment length")
+        if 0xC0 <= kind <= 0xCF and kind not in (0xC4, 0xC8, 0xCC):  # a start of frame
+            _, height, width, components = struct.unpack(">BHHB", fh.read(6))
+            return ImageHeader(width, height, 1 if components == 1 else 3, 1)
+        fh.seek(length - 2, os.SEEK_CUR)
+
+
+def _tiff_header(head: bytes, fh) -> ImageHeader | None:
+    if head[:4] not in (b"II*\x00", b"MM\x00*"):
+        return None
+    order = "<" if head[:2] == b"II" else ">"
+    (offset,) = struct.unpack(order + "I", head[4:8])
+    fh.seek(offset)
+    (count,) = struct.unpack(order + "H", fh.read(2))
+    entries = fh.read(12 * count)
+    tags = {}
+    for i in range(count):
+        tag, kind, n, value = struct.unpack(order + "HHI4s", entries[12 * i:12 * i + 12])
+        fmt = {3: "H", 4: "I"}.get(kind)
+        if fmt is not None:  # the first value: in the entry, or where it points when it does not fit
+            if n * struct.calcsize(fmt) > 4:
+                fh.seek(struct.unpack(order + "I", value)[0])
+                value = fh.read(4)
+            tags[tag] = struct.unpack(order + fmt, value[:struct.calcsize(fmt)])[0]
+    bits = tags.get(258, 1)
+    return ImageHeader(tags[256], tags[257], tags.get(277, 1), max(1, bits // 8))
+
+
+def _bmp_header(head: bytes, fh) -> ImageHeader | None:
+    if not head.startswith(b"BM"):
+        return None
+    (size,) = struct.unpack("<I", head[14:18])
+    if size == 12:
+        width, height, _, bits = struct.unpack("<HHHH", head[18:26])
+    else:
+        width, height, _, bits = struct.unpack("<iiHH", head[18:30])
+    # Palettes (8 bits or fewer) decode to BGR unless all grey (counted as BGR); 32 bits to BGRA.
+    return ImageHeader(abs(width), abs(height), 4 if bits == 32 else 3, 1)
+
+
+def _webp_header(head: bytes, fh) -> ImageHeader | None:
+    if head[:4] != b"RIFF" or head[8:12] != b"WEBP":
+        return None
+    chunk = head[12:16]
+    if chunk == b"VP8 ":  # lossy: the key frame's 14-bit sizes
+        width, height = struct.unpack("<HH", head[26:30])
+        return ImageHeader(width & 0x3FFF, height & 0x3FFF, 3, 1)
+    if chunk == b"VP8L":  # lossless: 14 bits each, minus one, then the alpha bit
+        (bits,) = struct.unpack("<I", head[21:25])
+        return ImageHeader((bits & 0x3FFF) + 1, ((bits >> 14) & 0x3FFF) + 1, 4 if bits >> 28 & 1 else 3, 1)
+    if chunk == b"VP8X":  # extended: 24-bit canvas sizes minus one, alpha flag
+        width = int.from_bytes(head[24:27], "little") + 1
+        height = int.from_bytes(head[27:30], "little") + 1
+        return ImageHeader(width, height, 4 if head[20] & 0x10 else 3, 1)
+    return None
+
+
+_PNM = re.compile(rb"^(P[1-6]|P[Ff])(?:\s+(?:#[^\n]*\n)*\s*)(\d+)(?:\s+(?:#[^\n]*\n)*\s*)(\d+)"
+                  rb"(?:(?:\s+(?:#[^\n]*\n)*\s*)([-+0-9.eE]+))?")
+
+
+def _pnm_header(head: bytes, fh) -> ImageHeader | None:
+    match = _PNM.match(head)
+    if match is None:
+        return None
+    kind, width, height, last = match.group(1), int(match.group(2)), int(match.group(3)), match.group(4)
+    if kind in (b"Pf", b"PF"):
+        return ImageHeader(width, height, 3 if kind == b"PF" else 1, 4)
+    deep = kind not in (b"P1", b"P4") and last is not None and float(last) > 255
+    return ImageHeader(width, height, 3 if kind in (b"P3", b"P6") else 1, 2 if deep else 1)
 
 
 def to_float_image(image: np.ndarray) -> np.ndarray:

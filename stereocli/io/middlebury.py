@@ -12,6 +12,7 @@ import numpy as np
 
 from ..errors import DataError, excerpt
 from .atomic import write_text
+from .text import read_text_limited
 
 _NUMBER = re.compile(r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?")
 
@@ -50,7 +51,7 @@ def read_calib_txt(path: str | os.PathLike) -> MiddleburyCalib:
     """Parse a Middlebury ``calib.txt``. Missing cam0 is an error; other keys are optional."""
     path = Path(path)
     try:
-        text = path.read_text()
+        text = read_text_limited(path, "calib.txt")
     except (OSError, UnicodeDecodeError) as exc:
         raise DataError(f"{path}: cannot read calib.txt ({exc})") from None
     entries: dict[str, str] = {}

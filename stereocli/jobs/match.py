@@ -29,13 +29,15 @@ whichever workers ran the strips.
 from __future__ import annotations
 
 import json
+import os
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ..errors import ConfigError, DataError, StereoError
+from ..errors import ConfigError, DataError, MemoryBudgetError, StereoError
 from ..io.atomic import write_text
 from ..io.pairs import StereoInput
 from .items import WorkItem, check_output_paths, label_message, prepare_worker, settings_digest
@@ -200,9 +202,90 @@ def _read_views(item: WorkItem, gray: bool = False) -> tuple[np.ndarray, np.ndar
                         lambda: read_image(item.inputs["right"], gray=gray))
 
 
+#: Extra (H, W) float32 maps the survey (sparse matches, range estimate) holds at its peak
+#: beside the views, for grey and for colour views (measured: 2.5 and 3.4).
+SURVEY_COPIES = {False: 3.0, True: 4.0}
+#: Extra (H, W) float32 maps while an output is written: the PFM's encoded bytes, the 16-bit
+#: PNG's float64 arithmetic, the preview's colours.
+WRITE_COPIES = {"disparity": 2.0, "png16": 8.0, "viz": 4.0}
+
+
+@dataclass(frozen=True)
+class MemoryPlan:
+    """The memory one ``match`` item needs, planned from its images' headers."""
+
+    width: int
+    height: int
+    outside: float  # bytes at the peak of decoding, the survey or writing (runtime included)
+    least: float  # bytes: the smallest peak any strip plan and disparity range can have
+    estimate: float | None  # bytes: the planned peak (None until the range is estimated)
+    strips: int | None  # row strips of the plan (None until the range is estimated)
+
+
+def memory_plan(item: WorkItem, config) -> MemoryPlan | None:
+    """Plan the memory of matching ``item`` (validated ``config``) before anything is decoded.
+
+    Counts the runtime, decoding the views, the survey, the pipeline's whole-image buffers and
+    one strip (:func:`~stereocli.matching.pipeline.planned_peak`) and writing the outputs. Raises
+    :class:`DataError` naming the pair when even the least of these exceeds
+    ``runtime.memory_gb``, and :class:`~stereocli.errors.MemoryBudgetError` when the pair's
+    disparity range cannot fit in row strips. None when an image's header cannot be read
+    (the pipeline then plans once the views are decoded).
+    """
+    from ..features.survey import measures_rows
+    from ..io.images import read_image_header
+    from ..matching.pipeline import GIB, RUNTIME_BASE, image_memory, plan_strips, planned_peak
+
+    views = [read_image_header(item.inputs[side]) for side in ("left", "right")]
+    if None in views or views[0].width * views[0].height != views[1].width * views[1].height:
+        return None  # sizes that differ are reported once the views are decoded
+    width, height = views[0].width, views[0].height
+    plane = 4.0 * width * height  # one (H, W) float32 map
+    masks = sum(1 for key in ("left_valid", "right_valid") if key in item.inputs)
+    files = [os.path.getsize(item.inputs[side]) for side in ("left", "right")]
+    # Decoding: the file's bytes, what OpenCV decodes and, for colours, the RGB copy; both views at once.
+    decoding = sum(f + v.decoded_bytes + v.image_bytes * (v.channels >= 3) for f, v in zip(files, views))
+    colour = [v.channels >= 3 for v in views]
+    inputs = [v.image_bytes for v in views]
+    if colour[0] != colour[1]:  # one colour and one grey view: both are read again as grey
+        grey = [v.width * v.height * v.itemsize for v in views]
+        decoding = max(decoding, sum(inputs) + sum(files) + sum(grey))
+        inputs, colour = grey, [False, False]
+    held = sum(inputs) + masks * width * height
+    opts, outputs = item.options, item.outputs
+    results = plane * (1 + ("right" in outputs) + ("confidence" in outputs))
+    # The survey's sparse matches run before the match, or after it (beside the maps) when the
+    # range is known and the config's row_align, which then measures the rows, finds too few tracks.
+    after_match = opts.get("ndisp") is not None and measures_rows(config)
+    survey = held + plane * SURVEY_COPIES[any(colour)] + results * after_match
+    writing = held + results + plane * max(WRITE_COPIES.get(key, 0.0) for key in outputs)
+    outside = RUNTIME_BASE + max(decoding, survey, writing)
+    images = image_memory(config, height, width, input_bytes=held, colour=tuple(colour), masks=bool(masks),
+                          want_right="right" in outputs, want_confidence="confidence" in outputs,
+                          keep_invalid=opts.get("keep_invalid", False))
+    least = max(outside, min(planned_peak(config, height, width, 1, plan, images)
+                             for plan in ([(0, height)], [(y0, min(height, y0 + 16)) for y0 in range(0, height, 16)])))
+    budget = config.runtime.memory_gb
+    if least > budget * GIB:
+        message = (f"{item.name}: {width}x{height} needs at least {least / GIB:.1f} GiB even in row strips "
+                   f"(decoded views, working copies, disparity maps; budget runtime.memory_gb={budget:g}); "
+                   "downscale the pair or raise runtime.memory_gb")
+        # A budget below the runtime's own memory holds no pair at all: the setting is at fault.
+        raise (MemoryBudgetError if budget * GIB < RUNTIME_BASE else DataError)(message)
+    if opts.get("ndisp") is None:
+        return MemoryPlan(width, height, outside, least, None, None)
+    strips = plan_strips(config, height, width, opts["ndisp"], images)
+    estimate = max(outside, planned_peak(config, height, width, opts["ndisp"], strips, images))
+    return MemoryPlan(width, height, outside, least, estimate, len(strips))
+
+
 def match_item(item: WorkItem) -> dict:
     """Match one pair (:func:`stereocli.match`) and write its outputs atomically; returns
-    details for the run record."""
+    details for the run record.
+
+    The pair's memory is planned from its images' headers first (:func:`memory_plan`), so a
+    pair that cannot fit in ``runtime.memory_gb`` is refused before it is decoded.
+    """
     from ..api import match
     from ..io.exif import orientation_note
     from ..io.images import write_disparity, write_image
@@ -210,6 +293,7 @@ def match_item(item: WorkItem) -> dict:
 
     opts = item.options
     config = _config(opts["config"])
+    memory = memory_plan(item, config)
     t_load = time.perf_counter()
     left, right = _read_views(item)
     if left.shape[:2] != right.shape[:2]:
@@ -257,7 +341,7 @@ def match_item(item: WorkItem) -> dict:
         "width": w, "height": h, "min_disp": min_disp, "ndisp": ndisp,
         "seconds": round(seconds, 4), "load_seconds": round(load_seconds, 4),
         "stage_seconds": result.timings, "strips": result.strips,
-        "memory_estimate_gb": round(result.memory_estimate_gb, 3),
+        "memory_estimate_gb": round(_planned_gb(memory, result), 3),
         "mde_per_s": round(w * h * ndisp / max(seconds, 1e-9) / 1e6, 2),
         "valid_fraction": round(float(finite.mean()), 6),
         **survey,
@@ -276,6 +360,16 @@ def match_item(item: WorkItem) -> dict:
     write_text(out["params"], json.dumps(params, indent=2) + "\n")
     write_text(out["time"], f"{seconds:.6f}\n")
     return details
+
+
+def _planned_gb(memory: MemoryPlan | None, result) -> float:
+    """The item's planned peak in GiB: the pipeline's (``result.memory_estimate_gb``) or, when
+    the headers were read, the larger of it and the item's other phases."""
+    from ..matching.pipeline import GIB
+
+    if memory is None:
+        return result.memory_estimate_gb
+    return max(result.memory_estimate_gb, memory.outside / GIB)
 
 
 def cluster_strip_map(config_dict: dict) -> StripMap:

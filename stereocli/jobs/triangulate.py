@@ -10,6 +10,7 @@ import numpy as np
 
 from ..errors import DataError
 from ..io.pairs import output_name, unique_names
+from ..io.text import read_text_limited
 from .items import WorkItem, check_output_paths, settings_digest
 
 DISPARITY_NAMES = ("disp0.pfm", "disp0.npy", "disp0.png")
@@ -30,7 +31,7 @@ def _match_inputs(folder: Path) -> dict:
     if not params.is_file():
         return {}
     try:
-        recorded = json.loads(params.read_text()).get("inputs", {})
+        recorded = json.loads(read_text_limited(params, "params.json")).get("inputs", {})
     except (OSError, ValueError):
         return {}
     return {k: v for k, v in recorded.items() if isinstance(v, str) and Path(v).is_file()}

@@ -38,7 +38,7 @@ from __future__ import annotations
 import threading
 import time
 from dataclasses import dataclass, field, replace
-from typing import Callable
+from typing import Callable, Iterable, Iterator
 
 import numpy as np
 
@@ -58,8 +58,9 @@ FUSED = True
 _current_config: dict[int, PipelineConfig] = {}
 
 GIB = 1024.0**3
-#: Interpreter, numpy/numba/OpenCV libraries and compiled kernels (measured RSS before matching).
-RUNTIME_BASE = 0.35 * GIB
+#: Interpreter, numpy/numba/OpenCV libraries and compiled kernels (RSS before matching: 0.1 GiB
+#: with the kernels built at install, 0.2 GiB when the process compiles some).
+RUNTIME_BASE = 0.25 * GIB
 
 
 @dataclass
@@ -113,27 +114,122 @@ def estimate_memory(config: PipelineConfig, height: int, width: int, ndisp: int)
     return volume * volume_copies(config) + images + fixed
 
 
-def plan_strips(config: PipelineConfig, height: int, width: int, ndisp: int) -> list[tuple[int, int]]:
-    """Row ranges ``[(y0, y1), ...]`` to process; raises :class:`MemoryBudgetError` if impossible."""
+#: Extra (H, W) float32 maps of a preprocess or map stage whose ``map_copies`` trait is None.
+MAP_COPIES = 3.0
+#: Extra (H, W) float32 maps while :func:`extend_rows_into_invalid` runs on one view (int32
+#: column indices and their comparisons).
+EXTEND_COPIES = 7.0
+
+
+@dataclass(frozen=True)
+class ImageMemory:
+    """Bytes of one pair's whole-image buffers: everything the planner counts beside a row
+    strip's own (:func:`estimate_memory`). From :func:`image_memory`.
+
+    ``inputs``: the arrays the caller holds during the match (decoded views, valid masks).
+    ``beside``: the working views and the stitched maps, alive while the strips run (a pair
+    matched whole has them in its one strip, whose image-sized buffers count them).
+    ``mirrored``: a stage needs the mirrored run, whose strips run beside the pair's views and
+    maps, with views and maps of their own.
+    ``phases``: the largest of the phases that run on the whole image, inputs not included:
+    preprocessing (the working views and the largest stage's maps) and the map refinements (the
+    working views, the maps and the largest stage's maps).
+    """
+
+    inputs: float = 0.0
+    beside: float = 0.0
+    mirrored: bool = False
+    phases: float = 0.0
+
+
+def _map_copies(call) -> float:
+    copies = call.stage.traits.map_copies
+    return MAP_COPIES if copies is None else copies
+
+
+def image_memory(config: PipelineConfig, height: int, width: int, *, input_bytes: float = 0.0,
+                 colour: tuple[bool, bool] = (False, False), masks: bool = False, want_right: bool = False,
+                 want_confidence: bool = False, keep_invalid: bool = False) -> ImageMemory:
+    """The whole-image buffers of a ``height`` × ``width`` pair (:class:`ImageMemory`).
+
+    ``input_bytes``: the inputs as the caller holds them (views and masks); ``colour``: whether
+    the left and right views have colour channels; ``masks``: valid masks are given; the flags
+    are those of :func:`match_pair`. Depends only on these and ``config``, like the strip plan.
+    """
+    plane = float(height) * width * 4  # one (H, W) float32 map
+    refinements = _refinements(config, keep_invalid)
+    calls = [*config.preprocess, config.cost, *config.aggregation, config.optimizer, *refinements]
+    views = [plane * (3 if has_colour and _reads_colour(calls, side) else 1)
+             for has_colour, side in zip(colour, ("left", "right"))]
+    working = sum(views)
+    channels = max(views) / plane  # a preprocess stage's maps count per channel of the views
+    right = want_right or any(c.stage.traits.needs_right for c in refinements)
+    maps = plane * (1 + right + want_confidence + (1 + right) * _keeps_integer(refinements))
+    # Making a working view from 16-bit colours holds a float copy of it for a moment.
+    preprocess = max([max(views), plane * EXTEND_COPIES * masks,
+                      *(plane * channels * _map_copies(c) for c in config.preprocess)])
+    map_stages = [c for c in refinements if not c.stage.traits.needs_cost]
+    finishing = maps + max([0.0, *(plane * _map_copies(c) for c in map_stages)])
+    return ImageMemory(inputs=float(input_bytes), beside=working + maps,
+                       mirrored=any(c.stage.traits.needs_mirrored for c in map_stages),
+                       phases=working + max(preprocess, finishing))
+
+
+def _strip_rows(strips: list[tuple[int, int]], overlap: int, height: int) -> int:
+    """Rows of the plan's largest strip state (kept rows and their context)."""
+    if len(strips) == 1:
+        return strips[0][1] - strips[0][0]
+    return min(height, max(y1 - y0 for y0, y1 in strips) + 2 * overlap)
+
+
+def planned_peak(config: PipelineConfig, height: int, width: int, ndisp: int, strips: list[tuple[int, int]],
+                 images: ImageMemory | None = None) -> float:
+    """Estimated peak bytes of matching a pair with the strip plan ``strips``: one strip's
+    volumes (:func:`estimate_memory`, which counts the runtime), the inputs and the whole-image
+    buffers (``images``, from :func:`image_memory`; None counts none)."""
+    images = images or ImageMemory()
+    rows = _strip_rows(strips, config.runtime.strip_overlap, height)
+    beside = images.beside * ((len(strips) > 1) + images.mirrored)
+    return images.inputs + max(estimate_memory(config, rows, width, ndisp) + beside, RUNTIME_BASE + images.phases)
+
+
+def plan_strips(config: PipelineConfig, height: int, width: int, ndisp: int,
+                images: ImageMemory | None = None) -> list[tuple[int, int]]:
+    """Row ranges ``[(y0, y1), ...]`` to process; raises :class:`MemoryBudgetError` if impossible.
+
+    The budget counts the whole-image buffers ``images`` (:func:`image_memory`; None counts
+    none) beside the strips' volumes: the pair runs whole when everything fits, else in the
+    highest strips that fit beside them.
+    """
     rt = config.runtime
     budget = rt.memory_gb * GIB
-    if rt.strip_rows == 0 and estimate_memory(config, height, width, ndisp) <= budget:
-        return [(0, height)]
+    images = images or ImageMemory()
+    whole = [(0, height)]
+    if rt.strip_rows == 0 and planned_peak(config, height, width, ndisp, whole, images) <= budget:
+        return whole
     rows = rt.strip_rows
     if rows == 0:
         fixed = estimate_memory(config, 0, width, ndisp)
         per_row = estimate_memory(config, 1, width, ndisp) - fixed
-        rows = int((budget - fixed) // per_row) - 2 * rt.strip_overlap
+        beside = images.beside * (1 + images.mirrored)
+        rows = int((budget - fixed - images.inputs - beside) // per_row) - 2 * rt.strip_overlap
         # Strip height is rounded down to a multiple of 16 so the plan is stable.
         rows = (rows // 16) * 16
-    needed = estimate_memory(config, min(height, rows + 2 * rt.strip_overlap), width, ndisp)
-    if rows < 16 or needed > budget:
-        need_gb = estimate_memory(config, min(height, 16 + 2 * rt.strip_overlap), width, ndisp) / GIB
+    strips = [(y0, min(height, y0 + rows)) for y0 in range(0, height, rows)] if rows >= 16 else []
+    if not strips or planned_peak(config, height, width, ndisp, strips, images) > budget:
+        least = [(y0, min(height, y0 + 16)) for y0 in range(0, height, 16)]
+        need_gb = planned_peak(config, height, width, ndisp, least, images) / GIB
+        floor_gb = planned_peak(config, height, width, 1, least, images) / GIB
+        if floor_gb > rt.memory_gb:  # the image buffers alone, whatever the range
+            raise MemoryBudgetError(
+                f"{width}x{height} needs at least {need_gb:.1f} GiB even in row strips: its whole-image buffers "
+                f"(views, working copies, disparity maps) take {floor_gb:.1f} GiB of runtime.memory_gb="
+                f"{rt.memory_gb:g}; downscale the pair or raise the budget")
         raise MemoryBudgetError(
             f"{width}x{height} with ndisp={ndisp} needs at least {need_gb:.1f} GiB even in row strips "
             f"(budget runtime.memory_gb={rt.memory_gb:g}); lower ndisp, downscale, or raise the budget"
         )
-    return [(y0, min(height, y0 + rows)) for y0 in range(0, height, rows)]
+    return strips
 
 
 def _as_valid(mask: np.ndarray | None, shape: tuple[int, int], what: str) -> np.ndarray | None:
@@ -156,6 +252,8 @@ class PreparedPair:
     #: (left, right, left_valid, right_valid) as given to :func:`prepare`, kept only when a map
     #: refinement ``needs_mirrored`` (the mirrored pair is made from them).
     inputs: tuple | None = None
+    #: The whole-image buffers the strip plan counted (:func:`image_memory`).
+    images: ImageMemory = field(default_factory=ImageMemory)
 
 
 @dataclass
@@ -198,7 +296,7 @@ def extend_rows_into_invalid(image: np.ndarray, valid: np.ndarray) -> None:
     h, w = valid.shape
     if valid.all():
         return
-    columns = np.arange(w)
+    columns = np.arange(w, dtype=np.int32)  # int32 indices: half the memory of the default int64
     before = np.maximum.accumulate(np.where(valid, columns, -1), axis=1)  # last valid at or left of x
     after = np.minimum.accumulate(np.where(valid, columns, w)[:, ::-1], axis=1)[:, ::-1]  # first at or right
     use_after = (after < w) & ((before < 0) | (after - columns < columns - before))
@@ -230,9 +328,15 @@ def prepare(
         raise DataError(f"left is {left.shape[1]}x{left.shape[0]}, right is {right.shape[1]}x{right.shape[0]}: sizes differ")
     if ndisp < 1:
         raise DataError(f"ndisp must be at least 1 (got {ndisp})")
+    shape = left.shape[:2]
+    # Planned before any work, so a pair that cannot fit is refused before its buffers exist.
+    masks = [m for m in (left_valid, right_valid) if m is not None]
+    images = image_memory(config, shape[0], shape[1], input_bytes=sum(a.nbytes for a in (left, right, *masks)),
+                          colour=(left.ndim == 3, right.ndim == 3), masks=bool(masks), want_right=want_right,
+                          want_confidence=want_confidence, keep_invalid=keep_invalid)
+    strips = plan_strips(config, shape[0], shape[1], ndisp, images)
     _set_threads(config.runtime.threads)
     _current_config[threading.get_ident()] = config
-    shape = left.shape[:2]
     timings: dict[str, float] = {}
     refinements = _refinements(config, keep_invalid)
     want_right = want_right or any(c.stage.traits.needs_right for c in refinements)
@@ -252,11 +356,10 @@ def prepare(
             extend_rows_into_invalid(image, valid)
     for call in config.preprocess:
         _timed(timings, f"preprocess.{call.stage.name}", call.stage.func, state, call.params)
-    strips = plan_strips(config, shape[0], shape[1], ndisp)
     overlap = config.runtime.strip_overlap if len(strips) > 1 else 0
     mirrored = any(c.stage.traits.needs_mirrored for c in refinements)
     inputs = (left, right, left_valid, right_valid) if mirrored else None
-    return PreparedPair(state, strips, overlap, keep_invalid, timings, inputs)
+    return PreparedPair(state, strips, overlap, keep_invalid, timings, inputs, images)
 
 
 def _reads_colour(calls: list, side: str) -> bool:
@@ -308,45 +411,47 @@ def run_strip(sub: MatchState, config: PipelineConfig, y0: int, y1: int, *,
     _run_volume_stages(sub, config, volume_stages, timings)
     keep = slice(y0 - sub.row_offset, y1 - sub.row_offset)
     whole = keep.start == 0 and keep.stop == sub.shape[0]
-    crop = lambda m: None if m is None else (m if whole else np.ascontiguousarray(m[keep]))  # noqa: E731
+    # A copy: a row slice is a view, which would keep the context rows of every strip alive.
+    crop = lambda m: None if m is None else (m if whole else m[keep].copy())  # noqa: E731
     return StripResult(y0, y1, crop(sub.disparity), crop(sub.disparity_right) if sub.wants.right else None,
                        crop(sub.confidence), crop(sub.integer_disparity), crop(sub.integer_disparity_right),
                        sub.extras, timings)
 
 
-def finish(prepared: PreparedPair, results: list[StripResult], config: PipelineConfig) -> MatchResult:
-    """Stitch strip results (in plan order) and run the whole-image refinements."""
+#: The maps of a :class:`StripResult` that :func:`finish` stitches (``confidence`` and the
+#: integer maps only when a strip has them).
+_STITCHED = ("disparity", "disparity_right", "confidence", "integer_disparity", "integer_disparity_right")
+
+
+def finish(prepared: PreparedPair, results: Iterable[StripResult], config: PipelineConfig) -> MatchResult:
+    """Stitch strip results (in plan order) and run the whole-image refinements.
+
+    ``results`` may be an iterator: each strip's rows are copied into the whole maps as it
+    comes, so strips made on demand are never all held at once. A plan of one strip takes its
+    maps as they are (without a copy: the map stages may edit them).
+    """
     state = prepared.state
     shape = state.shape
-    if [(r.y0, r.y1) for r in results] != list(prepared.strips):
-        raise ValueError("strip results do not match the strip plan")
     timings = dict(prepared.timings)
-    disparity = np.empty(shape, np.float32)
-    disparity_right = np.empty(shape, np.float32) if state.wants.right else None
-    confidence = None
-    integer = {"integer_disparity": None, "integer_disparity_right": None}
-    for r in results:
-        disparity[r.y0:r.y1] = r.disparity
-        if state.wants.right:
-            disparity_right[r.y0:r.y1] = r.disparity_right
-        for key in integer:
-            part = getattr(r, key)
-            if part is not None:
-                if integer[key] is None:
-                    integer[key] = np.empty(shape, np.float32)
-                integer[key][r.y0:r.y1] = part
-        if r.confidence is not None:
-            if confidence is None:
-                confidence = np.zeros(shape, np.float32)
-            confidence[r.y0:r.y1] = r.confidence
-        state.extras.update(r.extras)
-        for key, seconds in r.timings.items():
+    maps: dict[str, np.ndarray | None] = dict.fromkeys(_STITCHED)
+    plan = iter(prepared.strips)
+    for result in results:
+        if (result.y0, result.y1) != next(plan, None):
+            raise ValueError("strip results do not match the strip plan")
+        _stitch(maps, result, shape, state.wants.right)
+        state.extras.update(result.extras)
+        for key, seconds in result.timings.items():
             timings[key] = timings.get(key, 0.0) + seconds
+    if next(plan, None) is not None:
+        raise ValueError("strip results do not match the strip plan")
 
     map_stages = [c for c in _refinements(config, prepared.keep_invalid) if not c.stage.traits.needs_cost]
     state.cost = None
-    state.disparity, state.disparity_right, state.confidence = disparity, disparity_right, confidence
-    state.integer_disparity, state.integer_disparity_right = integer.values()
+    state.disparity, state.disparity_right = maps["disparity"], maps["disparity_right"]
+    state.confidence = maps["confidence"]
+    state.integer_disparity, state.integer_disparity_right = maps["integer_disparity"], maps["integer_disparity_right"]
+    # Only the state holds the maps now, so a map stage that replaces one frees it.
+    result, maps = None, None
     for call in map_stages:
         if call.stage.traits.needs_mirrored:
             t0 = time.perf_counter()
@@ -361,17 +466,37 @@ def finish(prepared: PreparedPair, results: list[StripResult], config: PipelineC
         # The right map was matched on ``state.right``, whose rows a preprocess stage may have moved.
         state.disparity_right = _right_map_rows(state, state.disparity_right, to_input=True)
     _current_config.pop(threading.get_ident(), None)
-    strips, overlap = prepared.strips, prepared.overlap
+    strips = prepared.strips
     return MatchResult(
         disparity=np.ascontiguousarray(state.disparity, dtype=np.float32),
         disparity_right=state.disparity_right,
         confidence=state.confidence,
         timings={k: round(v, 6) for k, v in timings.items()},
         strips=len(strips),
-        memory_estimate_gb=estimate_memory(config, min(shape[0], strips[0][1] + 2 * overlap), shape[1],
-                                           state.ndisp) / GIB,
+        memory_estimate_gb=planned_peak(config, shape[0], shape[1], state.ndisp, strips, prepared.images) / GIB,
         notes=dict(state.notes),
     )
+
+
+def _stitch(maps: dict, result: StripResult, shape: tuple[int, int], right: bool) -> None:
+    """Copy a strip's maps into the whole maps of ``maps`` (made when first needed; taken as
+    they are from a strip that is the whole image). ``right``: the right map is wanted."""
+    for key in _STITCHED:
+        part = getattr(result, key) if key != "disparity_right" or right else None
+        if part is None:
+            continue
+        if (result.y0, result.y1) == (0, shape[0]) and _own_map(part, shape):
+            maps[key] = part
+            continue
+        if maps[key] is None:  # confidence: zero where a strip has none
+            maps[key] = np.zeros(shape, np.float32) if key == "confidence" else np.empty(shape, np.float32)
+        maps[key][result.y0:result.y1] = part
+
+
+def _own_map(part: np.ndarray, shape: tuple[int, int]) -> bool:
+    """Whether a whole-image strip map can be the pair's map as it is (what a copy into a fresh
+    float32 map would give)."""
+    return part.shape == shape and part.dtype == np.float32 and part.flags.c_contiguous and part.flags.writeable
 
 
 def _right_map_rows(state: MatchState, right_map: np.ndarray, *, to_input: bool) -> np.ndarray:
@@ -404,9 +529,13 @@ def mirrored_disparity(prepared: PreparedPair, config: PipelineConfig, call) -> 
     notes = prepared.state.notes
     preprocess = [replace(c, params=c.stage.traits.mirrored_params(c.params, notes.get(c.stage.name)))
                   if c.stage.traits.mirrored_params else c for c in config.preprocess]
+    # The pair's working views and maps stay alive beside the mirrored run: its budget is what
+    # they leave (the inputs it shares with the pair it counts itself).
+    runtime = replace(config.runtime, memory_gb=config.runtime.memory_gb - prepared.images.beside / GIB)
     saved = _current_config.get(threading.get_ident())
     try:
-        result = match_pair(flip(right), flip(left), replace(config, preprocess=preprocess, refinement=before),
+        result = match_pair(flip(right), flip(left),
+                            replace(config, preprocess=preprocess, refinement=before, runtime=runtime),
                             min_disp=prepared.state.min_disp, ndisp=prepared.state.ndisp,
                             left_valid=flip(right_valid), right_valid=flip(left_valid),
                             keep_invalid=prepared.keep_invalid)
@@ -422,8 +551,20 @@ StripMap = Callable[[PreparedPair, PipelineConfig], list[StripResult]]
 def run_strips(prepared: PreparedPair, config: PipelineConfig) -> list[StripResult]:
     """All strips of a prepared pair, one after the other in this process (bounded memory:
     one strip's volumes at a time)."""
-    return [run_strip(strip_input(prepared, y0, y1), config, y0, y1, keep_invalid=prepared.keep_invalid)
-            for y0, y1 in prepared.strips]
+    return list(_strips_one_by_one(prepared, config))
+
+
+def _popped(results: list) -> Iterator:
+    """The items of ``results`` in order, each removed from the list as it is handed out."""
+    results.reverse()
+    while results:
+        yield results.pop()
+
+
+def _strips_one_by_one(prepared: PreparedPair, config: PipelineConfig) -> Iterator[StripResult]:
+    # What :func:`match_pair` stitches by default: each strip is run when finish asks for it.
+    for y0, y1 in prepared.strips:
+        yield run_strip(strip_input(prepared, y0, y1), config, y0, y1, keep_invalid=prepared.keep_invalid)
 
 
 def match_pair(
@@ -467,7 +608,9 @@ def match_pair(
         prepared = prepare(left, right, config, min_disp=min_disp, ndisp=ndisp, left_valid=left_valid,
                            right_valid=right_valid, want_right=want_right, keep_invalid=keep_invalid,
                            want_confidence=want_confidence)
-        results = (strip_map or run_strips)(prepared, config)
+        results = (strip_map or _strips_one_by_one)(prepared, config)
+        if isinstance(results, list):  # each result is dropped once stitched
+            results = _popped(results)
         return finish(prepared, results, config)
     finally:
         _current_config.pop(threading.get_ident(), None)

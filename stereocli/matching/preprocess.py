@@ -51,7 +51,7 @@ class LoGParams:
     gain: float = param(1.0, "multiplier of the response before re-centring at 128", low=0.01, high=100.0)
 
 
-@register("preprocess", "log", LoGParams)
+@register("preprocess", "log", LoGParams, traits=StageTraits(map_copies=6.5))
 def log_filter(state: MatchState, p: LoGParams) -> None:
     """Laplacian of Gaussian band-pass filter, output 128 + gain·LoG clipped to [0, 255].
 
@@ -78,7 +78,7 @@ class MeanRemovalParams:
         check_odd_window("preprocess.mean_removal.window", self.window)
 
 
-@register("preprocess", "mean_removal", MeanRemovalParams)
+@register("preprocess", "mean_removal", MeanRemovalParams, traits=StageTraits(map_copies=3.5))
 def mean_removal(state: MatchState, p: MeanRemovalParams) -> None:
     """Subtract the local mean (box filter): output 128 + I − mean_window(I), clipped.
 
@@ -101,7 +101,7 @@ class BilateralSubtractionParams:
     sigma_color: float = param(20.0, "range σ of the bilateral filter", unit="grey levels", low=1.0, high=255.0)
 
 
-@register("preprocess", "bilateral_subtraction", BilateralSubtractionParams)
+@register("preprocess", "bilateral_subtraction", BilateralSubtractionParams, traits=StageTraits(map_copies=3.5))
 def bilateral_subtraction(state: MatchState, p: BilateralSubtractionParams) -> None:
     """Bilateral background subtraction: output 128 + I − bilateral(I), clipped.
 
@@ -123,7 +123,7 @@ class XSobelParams:
     cap: int = param(31, "clip the x-derivative to [-cap, cap] (OpenCV preFilterCap)", unit="grey levels", low=1, high=63)
 
 
-@register("preprocess", "xsobel", XSobelParams)
+@register("preprocess", "xsobel", XSobelParams, traits=StageTraits(map_copies=3.5))
 def xsobel(state: MatchState, p: XSobelParams) -> None:
     """x-Sobel prefilter as in OpenCV StereoBM: clip(Sobel_x(I), −cap, cap) + cap.
 
@@ -162,7 +162,7 @@ class HistogramParams:
     reference: str = param("left", "which view keeps its histogram (the other is mapped onto it)", choices=("left", "right"))
 
 
-@register("preprocess", "histogram_matching", HistogramParams)
+@register("preprocess", "histogram_matching", HistogramParams, traits=StageTraits(map_copies=10.5))
 def histogram_matching(state: MatchState, p: HistogramParams) -> None:
     """Per-pair histogram matching: remap one view so its intensity histogram equals the other's.
 
@@ -281,7 +281,7 @@ class ColumnPatternParams:
 
 
 @register("preprocess", "column_pattern", ColumnPatternParams,
-          traits=StageTraits(reads_left_colour=False, reads_right_colour=False))
+          traits=StageTraits(reads_left_colour=False, reads_right_colour=False, map_copies=0.5))
 def column_pattern(state: MatchState, p: ColumnPatternParams) -> None:
     """Remove an even/odd column offset (fixed-pattern sensor noise) from each view that has one.
 
@@ -360,7 +360,8 @@ def _mirrored_row_align(p: RowAlignParams, note: dict | None) -> RowAlignParams:
 
 
 @register("preprocess", "row_align", RowAlignParams,
-          traits=StageTraits(reads_left_colour=False, reads_right_colour=False, mirrored_params=_mirrored_row_align))
+          traits=StageTraits(reads_left_colour=False, reads_right_colour=False, mirrored_params=_mirrored_row_align,
+                             map_copies=2.5))
 def row_align(state: MatchState, p: RowAlignParams) -> None:
     """Resample the right view onto the left view's rows: corrects a residual vertical offset.
 

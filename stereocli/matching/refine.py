@@ -74,7 +74,7 @@ def _compares_integer(p: LRCheckParams) -> bool:
 
 @register("refinement", "lr_check", LRCheckParams,
           traits=StageTraits(needs_right=True, keeps_integer=_compares_integer, reads_left_colour=False,
-                             reads_right_colour=False))
+                             reads_right_colour=False, map_copies=1.5))
 def lr_check(state: MatchState, p: LRCheckParams) -> None:
     """Left-right consistency check: invalidate pixels the right view's disparity contradicts.
 
@@ -102,7 +102,8 @@ class MedianParams:
     size: int = param(3, "window side (odd)", unit="px", low=3, high=15)
 
 
-@register("refinement", "median", MedianParams, traits=StageTraits(reads_left_colour=False, reads_right_colour=False))
+@register("refinement", "median", MedianParams,
+          traits=StageTraits(reads_left_colour=False, reads_right_colour=False, map_copies=2.5))
 def median(state: MatchState, p: MedianParams) -> None:
     """Median filter over valid disparities only (holes neither spread nor get filled)."""
     if p.size % 2 == 0:
@@ -111,7 +112,7 @@ def median(state: MatchState, p: MedianParams) -> None:
 
 
 @register("refinement", "fill",
-          traits=StageTraits(fills_holes=True, reads_left_colour=False, reads_right_colour=False))
+          traits=StageTraits(fills_holes=True, reads_left_colour=False, reads_right_colour=False, map_copies=1.5))
 def fill(state: MatchState, params) -> None:
     """Fill invalid pixels along scanlines with the background (smaller) neighbouring disparity.
 
@@ -193,7 +194,7 @@ class SpeckleParams:
     max_diff: float = param(1.0, "neighbours differing by at most this belong to the same region", unit="px", low=0.0, high=100.0)
 
 
-@register("refinement", "speckle", SpeckleParams)
+@register("refinement", "speckle", SpeckleParams, traits=StageTraits(map_copies=6))
 def speckle(state: MatchState, p: SpeckleParams) -> None:
     """Remove small connected regions of similar disparity (isolated mismatches).
 
@@ -217,7 +218,8 @@ class InterpolateParams:
     tol: float = param(1.0, "a hole is a mismatch when a right pixel maps back to it within tol", unit="px", low=0.0, high=10.0)
 
 
-@register("refinement", "interpolate", InterpolateParams, traits=StageTraits(needs_right=True, fills_holes=True))
+@register("refinement", "interpolate", InterpolateParams,
+          traits=StageTraits(needs_right=True, fills_holes=True, map_copies=18))
 def interpolate(state: MatchState, p: InterpolateParams) -> None:
     """Classify holes as occluded or mismatched and fill them (Hirschmüller 2008 §2.5).
 
@@ -266,7 +268,7 @@ class PlaneSmoothParams:
 
 
 @register("refinement", "plane_smooth", PlaneSmoothParams,
-          traits=StageTraits(reads_left_colour=colour_switch, reads_right_colour=False))
+          traits=StageTraits(reads_left_colour=colour_switch, reads_right_colour=False, map_copies=2.5))
 def plane_smooth(state: MatchState, p: PlaneSmoothParams) -> None:
     """Edge-aware sub-pixel smoothing by local line fits along rows, then columns.
 

@@ -52,7 +52,7 @@ class TextureParams:
         check_odd_window("refinement.texture.window", self.window)
 
 
-@register("refinement", "texture", TextureParams)
+@register("refinement", "texture", TextureParams, traits=StageTraits(map_copies=6))
 def texture(state: MatchState, p: TextureParams) -> None:
     """Texture threshold: mark pixels in uniform regions (low local variance) invalid.
 

@@ -35,7 +35,7 @@ class PhotoConsistencyParams:
 
 
 @register("refinement", "photo_consistency", PhotoConsistencyParams,
-          traits=StageTraits(reads_left_colour=colour_switch, reads_right_colour=colour_switch))
+          traits=StageTraits(reads_left_colour=colour_switch, reads_right_colour=colour_switch, map_copies=7))
 def photo_consistency(state: MatchState, p: PhotoConsistencyParams) -> None:
     """Re-decide the pixels whose colours disagree with the pixel they match in the right image.
 

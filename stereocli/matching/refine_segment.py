@@ -46,7 +46,7 @@ class LocalConsistencyParams:
                               "(separable: false): a hole has no bin of its own to compare along a line")
 
 
-@register("refinement", "local_consistency", LocalConsistencyParams)
+@register("refinement", "local_consistency", LocalConsistencyParams, traits=StageTraits(map_copies=10))
 def local_consistency(state: MatchState, p: LocalConsistencyParams) -> None:
     """Locally consistent refinement (Mattoccia 2009): neighbours vote for disparity hypotheses.
 
@@ -109,7 +109,7 @@ class GeodesicVoteParams:
 
 
 @register("refinement", "geodesic_vote", GeodesicVoteParams,
-          traits=StageTraits(reads_left_colour=colour_switch, reads_right_colour=False))
+          traits=StageTraits(reads_left_colour=colour_switch, reads_right_colour=False, map_copies=6))
 def geodesic_vote(state: MatchState, p: GeodesicVoteParams) -> None:
     """Put depth edges back on colour edges: pixels beside a disparity step take the disparity
     their colour-connected neighbours along the row, then the column, support most.
@@ -243,7 +243,7 @@ def fit_segment_planes(disp: np.ndarray, labels: np.ndarray, p: PlaneFitParams):
     return planes, support, inliers, counts
 
 
-@register("refinement", "plane_fit", PlaneFitParams)
+@register("refinement", "plane_fit", PlaneFitParams, traits=StageTraits(map_copies=16))
 def plane_fit(state: MatchState, p: PlaneFitParams) -> None:
     """Segment-based outlier replacement: fit d = a·x + b·y + c per colour segment.
 

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from ..registry import param, register
+from ..registry import StageTraits, param, register
 from .cost import check_odd_window
 from .kernels import slanted as ksl
 from .state import MatchState
@@ -41,7 +41,7 @@ class SlantedPatchMatchParams:
         check_odd_window("refinement.slanted_patchmatch.census", self.census, 63)
 
 
-@register("refinement", "slanted_patchmatch", SlantedPatchMatchParams)
+@register("refinement", "slanted_patchmatch", SlantedPatchMatchParams, traits=StageTraits(map_copies=22))
 def slanted_patchmatch(state: MatchState, p: SlantedPatchMatchParams) -> None:
     """Sub-pixel refinement with slanted support windows (PatchMatch stereo, Bleyer et al. 2011).
 

@@ -42,7 +42,7 @@ class RegionVotingParams:
             raise ConfigError(f"refinement.region_voting: max_arm2 ({self.max_arm2}) must not exceed max_arm ({self.max_arm})")
 
 
-@register("refinement", "region_voting", RegionVotingParams, traits=StageTraits(fills_holes=True))
+@register("refinement", "region_voting", RegionVotingParams, traits=StageTraits(fills_holes=True, map_copies=9))
 def region_voting(state: MatchState, p: RegionVotingParams) -> None:
     """Iterative region voting (Mei et al. 2011): outliers take the dominant reliable disparity
     of their cross support region.
@@ -69,7 +69,7 @@ def region_voting(state: MatchState, p: RegionVotingParams) -> None:
 
 
 @register("refinement", "proper_interpolation", InterpolateParams,
-          traits=StageTraits(needs_right=True, fills_holes=True))
+          traits=StageTraits(needs_right=True, fills_holes=True, map_copies=2))
 def proper_interpolation(state: MatchState, p: InterpolateParams) -> None:
     """Fill outliers from the nearest reliable pixels in 16 directions (Mei et al. 2011).
 
