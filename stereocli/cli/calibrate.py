@@ -83,8 +83,9 @@ def calibrate_cmd(ctx, input_dir, output, pattern_text, square_text, units, patt
                   overwrite):
     """Calibrate a stereo rig from checkerboard (or circle grid / ChArUco) photo pairs.
 
-    INPUT is a folder with left/ and right/ subfolders (paired by file stem) or one folder of
-    left*/right* files (left01.jpg with right01.jpg). Each camera is calibrated alone, then
+    INPUT is a folder of left01/right01 (left_0001, 0001_left) photos, a folder with left/ +
+    right/ or cam0/ + cam1/ subfolders, or a folder of scene folders: the layouts of every
+    subcommand, with the same pair names (docs/formats.md). Each camera is calibrated alone, then
     R, T with the intrinsics fixed (unless --joint). The report (stderr; JSON file; --format
     json on stdout) lists per-view RMS, outliers, images without the target, the baseline,
     the rectified epipolar error and warnings.

@@ -40,8 +40,10 @@ def match_cmd(ctx, inputs, outdir, config_files, sets, ndisp, min_disp, png16_sc
               require_aligned):
     """Compute disparity maps for rectified pairs.
 
-    INPUT is a pair of image files, a scene folder (im0.png + im1.png [+ calib.txt]), a folder
-    of scene folders, or a folder with left/ and right/ subfolders paired by file stem.
+    INPUT is a pair of image files, a scene folder (im0/im1, im2/im6, view1/view5 or left/right
+    [+ calib.txt]), a folder of scene folders, a folder of left01/right01 (left_0001, 0001_left)
+    files, or a folder with left/ + right/ or cam0/ + cam1/ subfolders: the layouts of every
+    subcommand (docs/formats.md). A folder holding two layouts is an error naming them.
     The disparity range comes from --ndisp/--min-disp, else from each scene's calib.txt, else
     it is estimated from the images (recorded in params.json with its evidence). Every pair's
     row alignment is measured; a pair whose rows are out of line gets a warning.
