@@ -267,13 +267,17 @@ def _scene_input(folder: Path, left: Path, right: Path) -> StereoInput:
 def file_pair(left: Path, right: Path) -> StereoInput:
     """Two image files given on the command line, named as their folder would name them: a scene
     pair of one folder (``im0``/``im1``, ``left``/``right``, ...) is that scene (named by the folder,
-    with its calib.txt and masks); side-word partners (``left01``/``right01``) are named by their
-    common key (``01``); other files by the left file's stem."""
+    with its calib.txt and masks); files of ``left/`` and ``right/`` (``cam0/``, ``cam1/``) and
+    side-word partners (``left01``/``right01``) are named by their common key (``01``); other
+    files by the left file's stem."""
     if left.parent.resolve() == right.parent.resolve() and (left.stem, right.stem) in SCENE_PAIRS:
         return _scene_input(left.parent, left, right)
-    lkey, rkey = _folder_key(left.stem, "left"), _folder_key(right.stem, "right")
-    same_key = lkey == rkey and (lkey != left.stem or rkey != right.stem)
-    return StereoInput(name=lkey if same_key else left.stem, left=str(left), right=str(right))
+    if (left.parent.name.lower(), right.parent.name.lower()) in SUBFOLDER_PAIRS:
+        lkey, rkey = _folder_key(left.stem, "left"), _folder_key(right.stem, "right")
+        return StereoInput(name=lkey if lkey == rkey else left.stem, left=str(left), right=str(right))
+    (lside, lkey), (rside, rkey) = side_key(left.stem), side_key(right.stem)
+    partners = (lside, rside) == ("left", "right") and lkey == rkey and lkey
+    return StereoInput(name=lkey if partners else left.stem, left=str(left), right=str(right))
 
 
 # --------------------------------------------------------------------------- one folder
