@@ -65,9 +65,12 @@ def test_a_folder_of_scene_folders(tmp_path):
     _files(tmp_path / "data" / "a", "im0.png", "im1.png")
     _files(tmp_path / "data" / "b", "view1.png", "view5.png")
     _files(tmp_path / "data" / "notes", "sketch.png")
+    _files(tmp_path / "data" / "rig", "left01.png", "right01.png")
     pairs, problems = discover_pairs([str(tmp_path / "data")])
     assert [p.name for p in pairs] == ["a", "b"]
-    assert len(problems) == 1 and problems[0].startswith(f"{tmp_path / 'data' / 'notes'}: holds images but no")
+    assert len(problems) == 2 and problems[0].startswith(f"{tmp_path / 'data' / 'notes'}: holds images but no")
+    assert problems[1] == (f"{tmp_path / 'data' / 'rig'}: holds 2 left*/right* files (left01.png, ...), not one "
+                           f"scene; give {tmp_path / 'data' / 'rig'} itself to pair them")
 
 
 # --------------------------------------------------------------------------- side-word files in one folder

@@ -341,6 +341,10 @@ def _discover_folder(folder: Path) -> tuple[list[StereoInput], list[str]]:
             continue
         if scene:
             pairs.append(scene)
+            continue
+        inner = _layouts(sub)
+        if inner:  # pairs of their own, named by their files: give the folder itself
+            problems.append(f"{sub}: holds {inner[0][1]}, not one scene; give {sub} itself to pair them")
         elif image_files(sub):
             problems.append(f"{sub}: holds images but no recognised left/right pair ({_table()})")
     if kind == "scene folders":
