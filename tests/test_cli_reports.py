@@ -8,12 +8,10 @@ import json
 import re
 
 import numpy as np
-import pytest
 from conftest import REPO, two_scenes
 
 from stereocli.io.images import read_image
 from stereocli.runinfo import RunRecord
-
 
 # --------------------------------------------------------------------------- calibrate
 

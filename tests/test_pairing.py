@@ -99,8 +99,8 @@ def test_a_side_word_inside_another_word_is_no_side(tmp_path):
     folder = _files(tmp_path / "rig", "left01.png", "right01.png", "bright_02.png")
     pairs, problems = discover_pairs([str(folder)])
     assert [p.name for p in pairs] == ["01"]
-    assert problems == [f"{folder / 'bright_02.png'}: no left/right word in its name (the folder pairs "
-                        "left*/right* files); not paired"]
+    assert problems == [(f"{folder / 'bright_02.png'}: no left/right word in its name (the folder pairs "
+                         "left*/right* files); not paired")]
     with pytest.raises(DataError, match="do not pair up .*bright_02.png"):
         find_calibration_pairs(folder)
 
@@ -180,8 +180,10 @@ def _rig_as(folder: Path, left: str, right: str, count: int = 2) -> Path:
     return folder
 
 
-@pytest.mark.parametrize("left,right", [("left{:02d}.png", "right{:02d}.png"), ("left_{:04d}.png", "right_{:04d}.png"),
-                                        ("{:04d}_left.png", "{:04d}_right.png"), ("cam0/{:04d}.png", "cam1/{:04d}.png")])
+@pytest.mark.parametrize("left,right", [("left{:02d}.png", "right{:02d}.png"),
+                                        ("left_{:04d}.png", "right_{:04d}.png"),
+                                        ("{:04d}_left.png", "{:04d}_right.png"),
+                                        ("cam0/{:04d}.png", "cam1/{:04d}.png")])
 def test_every_subcommand_names_the_pairs_alike(run_cli, tmp_path, left, right):
     rig = _rig_as(tmp_path / "rig", left, right)
     expected = [n for n, _, _ in find_calibration_pairs(rig)]  # what calibrate names its views

@@ -41,8 +41,8 @@ from .common import print_json, run_batch_command, unpaired_failures
 @options.verbose
 @click.pass_context
 def match_cmd(ctx, inputs, outdir, config_files, sets, ndisp, min_disp, png16_scale, npy, viz, viz_range,
-              confidence, right, keep_invalid, overwrite, skip_existing, dry_run, jobs, scheduler, retries, split_strips,
-              require_aligned):
+              confidence, right, keep_invalid, overwrite, skip_existing, dry_run, jobs, scheduler, retries,
+              split_strips, require_aligned):
     """Compute disparity maps for rectified pairs.
 
     INPUT is a pair of image files, a scene folder (im0/im1, im2/im6, view1/view5 or left/right
