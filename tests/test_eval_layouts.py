@@ -50,6 +50,9 @@ def test_a_lone_kitti_pair_is_scored_with_kitti_rules(run_cli, tmp_path):
     assert scene["dataset"] == "kitti" and "nonocc" not in scene  # occ only: no disp_noc given
     assert scene["all"]["D1"] == pytest.approx(100 / 23) and scene["all"]["density"] == pytest.approx(100 * 21 / 23)
     assert report["failures"] == [] and any("nonocc not scored" in n for n in report["notes"])
+    # Without --dataset a bare 16-bit PNG is scored by MiddEval3 rules, and the message says how to get KITTI's.
+    r = run_cli("eval", est, gt, "--format", "json")
+    assert r.code == 3 and "--dataset kitti scores it by KITTI's rules" in r.json()["failures"][0]["message"]
     # A GT named disp_noc scores the non-occluded region.
     noc = tmp_path / "disp_noc.png"
     _kitti_gt(noc, noc=True)

@@ -416,7 +416,8 @@ def load_gt_file(path: Path, *, dataset: str | None = None, gt_scale: float | No
     gt = read_disparity(path, scale=scale)
     scene = Scene(name=path.stem, kind="generic", gt=gt, masks={"nonocc": None, "all": np.isfinite(gt)},
                   gt_path=path, resolution=resolution or "F")
-    scene.errors.append(f"{path}: a bare GT file has no non-occlusion mask, nonocc not scored")
+    hint = " (a KITTI GT: --dataset kitti scores it by KITTI's rules)" if scale == 256.0 and gt_scale is None else ""
+    scene.errors.append(f"{path}: a bare GT file has no non-occlusion mask, nonocc not scored{hint}")
     return scene
 
 
