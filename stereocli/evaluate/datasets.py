@@ -382,7 +382,7 @@ def load_scene(path: Path, *, dataset: str | None = None, gt_scale: float | None
     if kind == "kitti":
         raise ConfigError(f"{path}: a KITTI GT is a root with disp_noc_0/ and disp_occ_0/, not a scene folder")
     raise DataError(f"{path}: no ground truth found (expected disp0GT.pfm, disp<k>.pgm, view1 + disp1.png "
-                    "or disp_noc_0/)")
+                    "or disp_noc_0/; KITTI GT files: --dataset kitti)")
 
 
 def load_gt_file(path: Path, *, dataset: str | None = None, gt_scale: float | None = None,
@@ -463,7 +463,7 @@ def find_gt_scenes(gt_dir: Path, *, dataset: str | None = None, max_depth: int =
     walk(gt_dir, 1)
     if not found:
         raise DataError(f"{gt_dir}: no ground-truth scenes found (disp0GT.pfm, disp<k>.pgm, view1 + disp1.png, "
-                        "disp_noc_0/)")
+                        "disp_noc_0/; KITTI GT files: --dataset kitti)")
     return found
 
 
