@@ -20,6 +20,7 @@ validates their parameters.
 from __future__ import annotations
 
 import copy
+import re
 from pathlib import Path
 from typing import Any
 
@@ -50,6 +51,26 @@ def preset_dir() -> Path:
 
 def preset_names() -> list[str]:
     return sorted(p.stem for p in preset_dir().glob("*.yaml"))
+
+
+#: A sentence ends at a full stop followed by a word, a backquote or a bracket (not after
+#: "et al.", "e.g.", "i.e." or "vs."), or at a colon that opens a list ("...: - item").
+_SENTENCE_END = re.compile(r"(?<!\bal)(?<!\be\.g)(?<!\bi\.e)(?<!\bvs)\.(?=\s+[A-Za-z`(])|:(?=\s+- )")
+
+
+def preset_summary(name: str) -> str:
+    """The first sentence of a bundled preset's header comment, whole (for ``config presets``)."""
+    lines = []
+    for line in (preset_dir() / f"{name}.yaml").read_text().splitlines():
+        if not line.startswith("#"):
+            break
+        text = line.lstrip("#").strip()
+        if not text or text.startswith("scoreboard:"):
+            break
+        lines.append(text)
+    text = " ".join(lines)
+    end = _SENTENCE_END.search(text)
+    return text[: end.start()] + "." if end else text
 
 
 def resolve_config_path(name_or_path: str) -> Path:

@@ -1,7 +1,8 @@
 """Colour maps for disparity and error previews (8-bit RGB: previews only, never data).
 
 Shared by ``match --viz``, ``eval --error-maps`` and the HTML report, so every picture of a
-disparity map in the project uses the same colours for the same values.
+disparity map in the project uses the same colours for the same values, with a colour bar
+labelled with the range's numbers.
 """
 
 from __future__ import annotations
@@ -74,26 +75,46 @@ def colorize_error(error: np.ndarray, vmax: float, valid: np.ndarray | None = No
 
 
 def legend_bar(vmin: float, vmax: float, width: int, *, kind: str = "disparity", label: str = "px",
-               height: int = 34) -> np.ndarray:
-    """A horizontal colour bar with min / mid / max labels, (height, width, 3) uint8 RGB.
+               height: int = 34, zoom: float = 1.0) -> np.ndarray:
+    """A horizontal colour bar with min / mid / max labels, (height·zoom, width, 3) uint8 RGB.
 
-    ``kind`` is ``"disparity"`` (turbo) or ``"error"`` (inferno), matching the colourisers.
+    ``kind`` is ``"disparity"`` (turbo) or ``"error"`` (inferno), matching the colourisers;
+    ``zoom`` enlarges the bar and its text (for wide images).
     """
     width = max(int(width), 60)
-    ramp = np.tile(np.linspace(vmin, vmax, width, dtype=np.float32), (12, 1))
+    height, bar_rows = round(height * zoom), round(12 * zoom)
+    ramp = np.tile(np.linspace(vmin, vmax, width, dtype=np.float32), (bar_rows, 1))
     if kind == "error":
         bar = colorize_error(ramp, vmax)
     else:
         bar = colorize_disparity(ramp, vmin, vmax)
     canvas = np.full((height, width, 3), 255, dtype=np.uint8)
-    canvas[:12] = bar
-    font, scale = cv2.FONT_HERSHEY_SIMPLEX, 0.4
+    canvas[:bar_rows] = bar
+    font, scale, thickness = cv2.FONT_HERSHEY_SIMPLEX, 0.4 * zoom, max(1, round(zoom))
     texts = [(f"{vmin:.3g}", 0), (f"{(vmin + vmax) / 2:.3g}", 1), (f"{vmax:.3g} {label}", 2)]
     for text, where in texts:
-        (tw, _), _ = cv2.getTextSize(text, font, scale, 1)
+        (tw, _), _ = cv2.getTextSize(text, font, scale, thickness)
         x = [0, (width - tw) // 2, width - tw - 1][where]
-        cv2.putText(canvas, text, (max(x, 0), height - 6), font, scale, (0, 0, 0), 1, cv2.LINE_AA)
+        cv2.putText(canvas, text, (max(x, 0), height - round(6 * zoom)), font, scale, (0, 0, 0), thickness,
+                    cv2.LINE_AA)
     return canvas
+
+
+def disparity_preview(disp: np.ndarray, vmin: float | None = None, vmax: float | None = None) -> np.ndarray:
+    """``match --viz``: the coloured disparity (:func:`colorize_disparity`) above a colour bar
+    labelled with the range's numbers in px, (H + bar, max(W, 60), 3) uint8 RGB.
+
+    A missing bound comes from the map's robust range (:func:`disparity_range`). The bar grows
+    with the image width, so its numbers stay readable on large maps.
+    """
+    disp = np.asarray(disp, dtype=np.float32)
+    if vmin is None or vmax is None:
+        lo, hi = disparity_range(disp)
+        vmin = lo if vmin is None else vmin
+        vmax = hi if vmax is None else vmax
+    width = disp.shape[1] if disp.ndim == 2 else 0
+    legend = legend_bar(float(vmin), float(vmax), width, label="px", zoom=max(1.0, width / 800))
+    return with_legend(colorize_disparity(disp, vmin, vmax), legend)
 
 
 def with_legend(image: np.ndarray, legend: np.ndarray) -> np.ndarray:

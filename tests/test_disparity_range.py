@@ -156,7 +156,8 @@ def test_misaligned_pair_warns_and_fails_on_request(run_cli, tmp_path):
     assert r.code == 0
     warning = [line for line in r.err.splitlines() if line.startswith("Warning: low: rows not aligned")]
     assert len(warning) == 1 and ("median -6." in warning[0] or "median -5.9" in warning[0])
-    assert warning[0].endswith("rectify the pair first")  # fast has no row_align
+    assert warning[0].endswith("rectify the pair first (stereocli rectify --calib RIG.yml, or stereocli rectify "
+                               "--uncalibrated without a calibration)")  # fast has no row_align
     params = json.loads((tmp_path / "o" / "low" / "params.json").read_text())
     assert params["alignment"]["aligned"] is False and params["warnings"]
     assert params["alignment"]["source"] == "sparse matches"

@@ -440,7 +440,7 @@ def test_an_unwritable_detection_cache_is_a_warning(run_cli, tmp_path):
                 "40mm", "--cache", cache)
     assert r.code == 0, r.err
     warnings = [line for line in r.err.splitlines() if "detection cache not written" in line]
-    assert len(warnings) == 1 and warnings[0].startswith(f"warning: {cache}: ")
+    assert len(warnings) == 1 and warnings[0].startswith(f"Warning: {cache}: ")
     report = json.loads((tmp_path / "out" / "rig.report.json").read_text())
     assert any("detection cache not written" in w for w in report["warnings"])
     assert (tmp_path / "out" / "rig.yml").is_file() and not cache.exists()

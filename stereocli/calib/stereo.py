@@ -302,7 +302,7 @@ def calibrate_stereo(views: list[View], image_size: tuple[int, int], pattern: Pa
 
 
 def format_report(report: dict) -> str:
-    """The human-readable report (stderr)."""
+    """The human-readable report (``calibrate`` prints it on stdout)."""
     r = report
     u = r["units"]
     lines = [f"calibrated {r['views_used']} of {r['pairs_total']} pairs "

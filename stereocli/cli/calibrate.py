@@ -83,11 +83,12 @@ def calibrate_cmd(ctx, input_dir, output, pattern_text, square_text, units, patt
                   overwrite):
     """Calibrate a stereo rig from checkerboard (or circle grid / ChArUco) photo pairs.
 
-    INPUT is a folder with left/ and right/ subfolders (paired by file stem) or one folder of
-    left*/right* files (left01.jpg with right01.jpg). Each camera is calibrated alone, then
-    R, T with the intrinsics fixed (unless --joint). The report (stderr; JSON file; --format
-    json on stdout) lists per-view RMS, outliers, images without the target, the baseline,
-    the rectified epipolar error and warnings.
+    INPUT is a folder of left01/right01 (left_0001, 0001_left) photos, a folder with left/ +
+    right/ or cam0/ + cam1/ subfolders, or a folder of scene folders: the layouts of every
+    subcommand, with the same pair names (docs/formats.md). Each camera is calibrated alone, then
+    R, T with the intrinsics fixed (unless --joint). The report goes to stdout (text, or JSON with
+    --format json) and to OUTPUT stem + .report.json; it lists per-view RMS, outliers, images
+    without the target, the baseline, the rectified epipolar error and warnings (also on stderr).
 
     \b
     Examples:
@@ -140,11 +141,12 @@ def calibrate_cmd(ctx, input_dir, output, pattern_text, square_text, units, patt
     report = dict(result.report)
     report["outputs"] = [str(p) for p in written]
     write_text(report_path, json.dumps(report, indent=2) + "\n")
+    # The report is the command's result (stdout, like eval's); stderr has what was written and the warnings.
+    click.echo(json.dumps(report, indent=2) if fmt_report == "json" else format_report(report))
     if verbosity >= 0:
-        click.echo(format_report(report), err=True)
+        for warning in report["warnings"]:
+            click.echo(f"Warning: {warning}", err=True)
         click.echo(f"wrote {', '.join(map(str, written))} and {report_path}", err=True)
-    if fmt_report == "json":
-        click.echo(json.dumps(report, indent=2))
 
 
 @click.command("convert-calib")

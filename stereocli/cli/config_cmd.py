@@ -26,9 +26,12 @@ def show_cmd(config_files, sets):
 
 @config_group.command("presets")
 def presets_cmd():
-    """List the bundled presets (usable as --config NAME)."""
-    from ..config import preset_dir, preset_names
+    """List the bundled presets (usable as --config NAME), each with its whole first sentence."""
+    import re
+    import textwrap
+
+    from ..config import preset_names, preset_summary
 
     for name in preset_names():
-        first = (preset_dir() / f"{name}.yaml").read_text().splitlines()[0].lstrip("# ")
-        click.echo(f"{name}: {first}")
+        summary = re.sub(r"^[\w ]{0,40}? preset: ", "", preset_summary(name))  # the name is printed already
+        click.echo(textwrap.fill(f"{name}: {summary}", width=100, subsequent_indent="    ", break_on_hyphens=False))

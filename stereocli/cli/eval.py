@@ -26,8 +26,10 @@ def _parse_thresholds(_ctx: click.Context, _param: click.Parameter, value: str |
 @click.argument("ground_truth", type=click.Path(path_type=str))
 @click.option("--format", "fmt", type=click.Choice(["text", "json", "csv", "markdown"]), default="text",
               show_default=True, help="Report format on stdout.")
-@click.option("--dataset", type=click.Choice(["middlebury2014", "middlebury2003", "middlebury2001", "kitti"]),
-              default=None, help="Override the auto-detected ground-truth layout.")
+@click.option("--dataset", type=click.Choice(["middlebury2014", "middlebury2003", "middlebury2001", "middlebury2005",
+                                              "kitti"]),
+              default=None, help="Score with this benchmark's rules (default: detected from the ground truth); "
+                                 "kitti also reads a lone GT file or a folder of <name>.png GT files.")
 @click.option("--thresholds", callback=_parse_thresholds, default=None, metavar="LIST",
               help="Bad-pixel thresholds in px, comma-separated.  [default: 0.5,1,2,4]")
 @click.option("--resolution", type=click.Choice(["auto", "F", "H", "Q"]), default="auto", show_default=True,
@@ -41,7 +43,8 @@ def _parse_thresholds(_ctx: click.Context, _param: click.Parameter, value: str |
               help="Disparity range at the estimate's resolution for clipping [default: calib.txt ndisp; "
                    "none for v2].")
 @click.option("--gt-scale", type=options.Finite(min=0, min_open=True), default=None,
-              help="v2 8-bit GT scale [default per scene: Tsukuba 16, Venus 8, Teddy/Cones 4].")
+              help="v2 8-bit GT scale [default per scene: Tsukuba 16, Venus 8, Teddy/Cones 4; Middlebury "
+                   "2005/2006 1, 2 or 3 from the image width].")
 @click.option("--error-maps", "error_maps", type=click.Path(file_okay=False, path_type=str), default=None,
               metavar="DIR", help="Write DIR/<scene>/{disparity,gt,error,bad}.png (shared colour scale, legend).")
 @click.option("--html", "html_dir", type=click.Path(file_okay=False, path_type=str), default=None, metavar="DIR",
@@ -61,9 +64,10 @@ def eval_cmd(ctx: click.Context, results: str, ground_truth: str, fmt: str, data
     """Score disparity maps against ground truth with the official benchmark rules.
 
     RESULTS is a disparity file (PFM, 16-bit PNG, npy) or a folder of <scene>/disp0*.pfm
-    (+ time.txt), <scene>.pfm or KITTI <name>.png files. GROUND_TRUTH is a scene folder or a
-    folder of scene folders (Middlebury 2014 / MiddEval3, Middlebury 2001/2003) or a KITTI 2015
-    root (disp_noc_0/, disp_occ_0/). Scenes are matched by name; missing results are failures.
+    (+ time.txt), <scene>.pfm or KITTI <name>.png files. GROUND_TRUTH is a GT file, a scene
+    folder or a folder of scene folders (Middlebury 2014 / MiddEval3, 2001/2003, 2005/2006) or a
+    KITTI 2015 root (disp_noc_0/ and/or disp_occ_0/). Scenes are matched by name, as match names
+    its outputs; missing results are failures.
 
     Scenes are scored in-process, or in parallel with --jobs N (process pool) or --scheduler
     (Dask); the report is the same. --retries re-runs scenes whose scoring crashed.

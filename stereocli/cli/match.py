@@ -21,12 +21,17 @@ from .common import print_json, run_batch_command, unpaired_failures
                    "(default: calib.txt ndisp, else estimated).")
 @click.option("--min-disp", type=int, default=None, help="Smallest disparity searched, px (default 0; may be negative).")
 @click.option("--require-aligned", is_flag=True,
-              help="Fail a pair whose rows are not aligned (else a warning): it needs rectifying first.")
+              help="Fail a pair whose rows are not aligned (else a warning): it needs rectifying first "
+                   "(rectify --calib, or rectify --uncalibrated).")
 @click.option("--png16", "png16_scale", type=options.Finite(min=0, max=65535, min_open=True), default=None,
               metavar="SCALE",
               help="Also write disp0.png as uint16 round(d*SCALE), 0 = invalid (KITTI uses 256).")
 @click.option("--npy", is_flag=True, help="Also write disp0.npy (float32).")
-@click.option("--viz", is_flag=True, help="Also write disp0_viz.png, an 8-bit colour preview (not data).")
+@click.option("--viz", is_flag=True, help="Also write disp0_viz.png, an 8-bit colour preview with a colour bar "
+                                         "(not data).")
+@click.option("--viz-range", "viz_range", type=options.RANGE, metavar="MIN:MAX", default=None,
+              help="Disparities (px) at the ends of the --viz colours [default: calib.txt vmin:vmax, else each map's "
+                   "1st-99th percentiles]; implies --viz.")
 @click.option("--confidence", is_flag=True, help="Also write conf0.pfm, per-pixel confidence in [0, 1].")
 @click.option("--right", is_flag=True, help="Also write disp1.pfm, the right-view disparity.")
 @click.option("--keep-invalid", is_flag=True, help="Skip hole filling: invalid pixels stay +inf.")
@@ -35,13 +40,15 @@ from .common import print_json, run_batch_command, unpaired_failures
               help="Spread the row strips of each large pair over the Dask workers (default: on with --scheduler).")
 @options.verbose
 @click.pass_context
-def match_cmd(ctx, inputs, outdir, config_files, sets, ndisp, min_disp, png16_scale, npy, viz, confidence,
-              right, keep_invalid, overwrite, skip_existing, dry_run, jobs, scheduler, retries, split_strips,
-              require_aligned):
+def match_cmd(ctx, inputs, outdir, config_files, sets, ndisp, min_disp, png16_scale, npy, viz, viz_range,
+              confidence, right, keep_invalid, overwrite, skip_existing, dry_run, jobs, scheduler, retries,
+              split_strips, require_aligned):
     """Compute disparity maps for rectified pairs.
 
-    INPUT is a pair of image files, a scene folder (im0.png + im1.png [+ calib.txt]), a folder
-    of scene folders, or a folder with left/ and right/ subfolders paired by file stem.
+    INPUT is a pair of image files, a scene folder (im0/im1, im2/im6, view1/view5 or left/right
+    [+ calib.txt]), a folder of scene folders, a folder of left01/right01 (left_0001, 0001_left)
+    files, or a folder with left/ + right/ or cam0/ + cam1/ subfolders: the layouts of every
+    subcommand (docs/formats.md). A folder holding two layouts is an error naming them.
     The disparity range comes from --ndisp/--min-disp, else from each scene's calib.txt, else
     it is estimated from the images (recorded in params.json with its evidence). Every pair's
     row alignment is measured; a pair whose rows are out of line gets a warning.
@@ -69,7 +76,8 @@ def match_cmd(ctx, inputs, outdir, config_files, sets, ndisp, min_disp, png16_sc
     effective = config.as_dict()
     pairs, problems = discover_pairs(inputs)
     items = plan_items(pairs, outdir, config=effective, ndisp=ndisp, min_disp=min_disp, png16_scale=png16_scale,
-                       npy=npy, viz=viz, confidence=confidence, right=right, keep_invalid=keep_invalid,
+                       npy=npy, viz=viz or viz_range is not None, viz_range=viz_range, confidence=confidence,
+                       right=right, keep_invalid=keep_invalid,
                        split_strips=bool(scheduler) and split_strips is not False, require_aligned=require_aligned,
                        record_info={"versions": versions(), "config_sources": config.sources})
     if dry_run:

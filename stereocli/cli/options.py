@@ -38,6 +38,26 @@ class _NdispType(click.ParamType):
 
 NDISP = _NdispType()
 
+
+class _RangeType(click.ParamType):
+    """``MIN:MAX``: two finite numbers, MIN below MAX (e.g. ``0:64``, ``-8.5:40``)."""
+
+    name = "MIN:MAX"
+
+    def convert(self, value, param, ctx):
+        if isinstance(value, tuple):
+            return value
+        try:
+            low, high = (float(v) for v in str(value).split(":"))
+        except ValueError:
+            self.fail(f"{excerpt(value, quote=True)} is not MIN:MAX (two numbers, e.g. 0:64)", param, ctx)
+        if not (math.isfinite(low) and math.isfinite(high)) or low >= high:
+            self.fail(f"{excerpt(value, quote=True)}: MIN and MAX must be finite numbers, MIN below MAX", param, ctx)
+        return low, high
+
+
+RANGE = _RangeType()
+
 overwrite = click.option("--overwrite", is_flag=True, help="Replace existing outputs.")
 skip_existing = click.option("--skip-existing", is_flag=True, help="Skip items whose outputs already exist (resume).")
 dry_run = click.option("--dry-run", is_flag=True, help="Print the plan as JSON and write nothing.")

@@ -56,8 +56,9 @@ def rectify_cmd(ctx, inputs, calib_path, uncalibrated, per_pair, outdir, alpha, 
                 check, fmt, overwrite, skip_existing, dry_run, jobs, scheduler, retries):
     """Rectify stereo pairs so that epipolar lines are image rows.
 
-    INPUT is a pair of image files, a folder with left/ + right/ subfolders, a folder of
-    left*/right* photos (paired by the text after the side word), or scene folders.
+    INPUT is a pair of image files, a folder of left01/right01 (left_0001, 0001_left) photos, a
+    folder with left/ + right/ or cam0/ + cam1/ subfolders, or scene folders: the layouts of
+    every subcommand (docs/formats.md). Each pair writes OUTDIR/<name>/, named as match names it.
     Without --ndisp, calib.txt gets the range estimated from the rectified pair, rounded up to
     a multiple of 16 (at least f·B / --min-depth).
 
@@ -81,7 +82,7 @@ def rectify_cmd(ctx, inputs, calib_path, uncalibrated, per_pair, outdir, alpha, 
                  if ctx.get_parameter_source(name) == click.core.ParameterSource.COMMANDLINE]
         if given:
             raise usage_error(f"--uncalibrated estimates the rectification; {', '.join(given)} does not apply")
-        pairs, problems = discover_pairs(inputs, side_words=True)
+        pairs, problems = discover_pairs(inputs)
         _rectify_uncalibrated(ctx, pairs, problems, outdir, interp=interp, check=check, ndisp=ndisp,
                               per_pair=per_pair, fmt=fmt, verbosity=verbosity, overwrite=overwrite,
                               skip_existing=skip_existing, dry_run=dry_run, jobs=jobs, scheduler=scheduler,
@@ -96,7 +97,7 @@ def rectify_cmd(ctx, inputs, calib_path, uncalibrated, per_pair, outdir, alpha, 
 
     size = _size(size_text)
     load_calibration(calib_path)  # fail fast (exit 1/2) before any work
-    pairs, problems = discover_pairs(inputs, side_words=True)
+    pairs, problems = discover_pairs(inputs)
     items = plan_items(pairs, outdir, calib_path=calib_path, alpha=alpha, size=size, interpolation=interp,
                        check=check, ndisp=ndisp, min_depth=min_depth)
     if dry_run:

@@ -19,7 +19,8 @@ from ..errors import ConfigError as usage_error  # one-line message, exit 2
               help="Calibration of the rectified pair (calib.txt, OpenCV, ROS); default: calib.txt beside the disparity.")
 @click.option("--image", type=click.Path(dir_okay=False), help="Left image for colours (default: im0.png beside it).")
 @click.option("--scenes", type=click.Path(file_okay=False),
-              help="Folder of scene folders (rectify output) to find <name>/calib.txt and im0.png in.")
+              help="The pairs (e.g. rectify's output, any layout match reads) whose calib.txt and left image "
+                   "go with the disparity of the same name.")
 @click.option("--confidence", type=click.Path(dir_okay=False), help="Confidence map (PFM/npy) stored per point.")
 @click.option("--scale", type=options.Finite(min=0, min_open=True),
               help="Disparity scale of integer PNG inputs (d = value / scale; 16-bit default 256).")

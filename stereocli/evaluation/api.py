@@ -56,8 +56,10 @@ class EvalOptions:
         neighbour, divided by the factor) instead of upsampling the estimate.
     ndisp : disparity range at the *estimate's* resolution for clipping (default: calib.txt
         for Middlebury 2014; no clipping for v2 unless given).
-    dataset : layout override (``middlebury2014``, ``middlebury2003``/``2001``, ``kitti``).
-    gt_scale : v2 8-bit GT scale override (default per scene: Tsukuba 16, Venus 8, Teddy/Cones 4).
+    dataset : layout override (``middlebury2014``, ``middlebury2003``/``2001``, ``middlebury2005``,
+        ``kitti``); never ignored: a GT that does not fit it is an error.
+    gt_scale : v2 8-bit GT scale override (default per scene: Tsukuba 16, Venus 8, Teddy/Cones 4;
+        Middlebury 2005/2006: 1, 2 or 3 from the image width).
     keep_arrays : keep the scored arrays on each result (for error maps / HTML).
     """
 
@@ -250,6 +252,11 @@ def rules_text(kinds: Sequence[str], options: EvalOptions, resolutions: Sequence
              "in 'invalid' and as bad; avgerr/rms/quantiles over valid pixels only; average weighted "
              "(0.5 for PianoL, Playroom, Playtable, Shelves, Vintage)")
         parts.append(s)
+    if "middlebury2005" in kinds:
+        parts.append("Middlebury 2005/2006 rules: 8-bit GT stored in full-size units, divided by the size's factor "
+                     "(Full 1, Half 2, Third 3, told from the image width; 0 unknown); no clipping; invalid estimates "
+                     "count as bad; errors in px of the scored size; nonocc masks DERIVED from the GT (z-buffer "
+                     "visibility, cross-checked with disp5)")
     if "middlebury-v2" in kinds:
         parts.append("Middlebury v2 rules: 8-bit GT decoded by the scene scale (0 unknown); no clipping; "
                      "invalid estimates count as bad; standard metric bad1.0; nonocc masks DERIVED from the GT "
@@ -257,7 +264,7 @@ def rules_text(kinds: Sequence[str], options: EvalOptions, resolutions: Sequence
     if "kitti" in kinds:
         parts.append("KITTI 2015 rules: missing estimates filled by the devkit background interpolation, "
                      "D1 outlier = |d-gt| > 3 px and > 5 % of gt; density = share of GT pixels with an estimate; "
-                     "nonocc = disp_noc_0, all = disp_occ_0")
+                     "nonocc = disp_noc (disp_noc_0), all = disp_occ (disp_occ_0); a region without GT is not scored")
     res = sorted(set(resolutions) - {"F"})
     if res:
         letters = "/".join(res)
@@ -315,6 +322,8 @@ def evaluate_pair(
                             f"{scene.gt.shape[1]}x{scene.gt.shape[0]}")
         filled = kitti_interpolate_background(est)
         for region in ("nonocc", "all"):
+            if region not in scene.masks:  # no GT of this region given: noted, not scored
+                continue
             gt_r = scene.mask_gt.get(region)
             metrics[region] = None if gt_r is None else kitti_stats(
                 est, gt_r, obj_map=scene.obj_map, filled=filled, thresholds=options.thresholds,
@@ -523,9 +532,11 @@ def evaluate_folder(
 
 
 def _add_mask_notes(report: EvalReport) -> None:
+    """The derived masks, and what each scene noted (its GT size, a region without GT), as report notes."""
     derived = sorted({s.name for s in report.scenes if "nonocc" in s.mask_notes})
     if derived:
         report.notes.append(f"nonocc masks DERIVED (not official) for: {', '.join(derived)}")
+    report.notes += [f"{s.name}: {note}" for s in report.scenes for note in s.notes]
 
 
 def evaluate(
@@ -552,8 +563,8 @@ def evaluate(
     if results.is_file():
         pair_file = results
         time_path = ds._time_file(results.parent) if results.name.startswith("disp0") else None
-    elif ds.detect_layout(ground_truth) in ("middlebury2014", "middlebury2003") and \
-            any(results.glob("disp0*.pfm")):
+    elif any(results.glob("disp0*.pfm")) and (ground_truth.is_file() or options.dataset == "kitti"
+                                              or ds.detect_layout(ground_truth) is not None):
         entry = ds.result_in_folder(results)
         if entry.path is None:
             raise DataError(entry.problem or f"{results}: no result")
@@ -564,7 +575,8 @@ def evaluate(
         return evaluate_folder(results, ground_truth, options=options, scorer=scorer)
     # Pair mode: a folder of scenes gives the one named like the result (its folder or file stem).
     name = pair_file.parent.name if pair_file.name.startswith("disp0") else pair_file.stem
-    scene = pair_scene(ground_truth, options, name=name, kitti_name=pair_file.stem, label=str(pair_file))
+    # A KITTI frame is named like the result too (its folder for disp0*.pfm).
+    scene = pair_scene(ground_truth, options, name=name, kitti_name=name, label=str(pair_file))
     return evaluate_pair(pair_file, scene, options=options, time=ds.read_time(time_path)).as_report()
 
 

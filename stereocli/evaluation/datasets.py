@@ -10,8 +10,14 @@ Layouts (auto-detected per folder, overridable with ``dataset=``):
   and a larger one (``disp6``) the right-view GT. Official region masks (``nonocc*``, ``all*``,
   ``disc*``, 255 = scored) are used when present, otherwise the non-occluded mask is derived
   (:func:`stereocli.evaluation.metrics.derive_nonocc_mask`) and labelled as derived.
+* ``middlebury2005`` (2005/2006 sets): ``view1``/``view5`` images with the 8-bit GT ``disp1.png``
+  (``disp5.png`` the right view's) stored in full-size units at every size, so divided by 1, 2 or
+  3 at Full, Half or Third size, told from the image width (:data:`MB2005_SIZES`); 0 unknown.
 * ``kitti`` (2015): a root holding ``disp_noc_0/<name>.png`` and/or ``disp_occ_0/<name>.png``
-  (uint16, d * 256, 0 invalid), optional ``obj_map/<name>.png`` and ``image_2/<name>.png``.
+  (uint16, d * 256, 0 invalid), optional ``obj_map/<name>.png`` and ``image_2/<name>.png``; either
+  folder alone is scored (noc with ``disp_noc_0``, occ with ``disp_occ_0``). With ``dataset="kitti"``
+  also a single GT file, or a folder of ``<name>.png`` GT files (occ, or noc when the folder or
+  file is named ``disp_noc*``).
 """
 
 from __future__ import annotations
@@ -28,7 +34,7 @@ from ..io.middlebury import read_calib_txt
 from ..io.text import read_text_limited
 from .metrics import derive_nonocc_mask
 
-DATASETS = ("middlebury2014", "middlebury2003", "middlebury2001", "kitti")
+DATASETS = ("middlebury2014", "middlebury2003", "middlebury2001", "middlebury2005", "kitti")
 
 #: MiddEval3 training-set weights (official table): 0.5 for these, 1.0 for the rest.
 MIDDEVAL3_HALF_WEIGHT = frozenset({"PianoL", "Playroom", "Playtable", "Shelves", "Vintage"})
@@ -38,6 +44,10 @@ V2_SCALES = {"tsukuba": 16.0, "venus": 8.0, "teddy": 4.0, "cones": 4.0, "barn1":
              "bull": 8.0, "poster": 8.0, "sawtooth": 8.0, "map": 8.0}
 #: v2 disparity ranges (data/MANIFEST.md), used only for the s/GD time column.
 V2_NDISP = {"tsukuba": 16, "venus": 20, "teddy": 60, "cones": 60}
+
+#: Middlebury 2005/2006 sizes: (name, divisor of the 8-bit GT, smallest and largest image width in
+#: px). The GT holds full-size disparities at every size; the sets' full widths are 1240-1396 px.
+MB2005_SIZES = (("Full", 1, 1200, 1460), ("Half", 2, 600, 730), ("Third", 3, 400, 490))
 
 #: MiddEval3 resolution letter -> size factor relative to full resolution.
 RESOLUTION_FACTORS = {"F": 1, "H": 2, "Q": 4}
@@ -57,7 +67,7 @@ class Scene:
     """
 
     name: str
-    kind: str  # middlebury2014 | middlebury-v2 | kitti | generic
+    kind: str  # middlebury2014 | middlebury-v2 | middlebury2005 | kitti | generic
     gt: np.ndarray  # (H, W) float32 px at the GT resolution, +inf unknown
     masks: dict[str, np.ndarray | None]
     gt_path: Path
@@ -112,6 +122,12 @@ def is_kitti_root(path: Path) -> bool:
     return path.is_dir() and ((path / "disp_noc_0").is_dir() or (path / "disp_occ_0").is_dir())
 
 
+def _is_mb2005_scene(path: Path) -> bool:
+    """A Middlebury 2005/2006 scene: ``view1`` and ``disp1`` side by side."""
+    return _first_image(path, "view1") is not None and any(
+        (path / f"disp1{suffix}").is_file() for suffix in (".png", ".pgm"))
+
+
 def detect_layout(path: Path) -> str | None:
     """Layout of a GT *scene folder* or KITTI root: a name from :data:`DATASETS` or ``None``."""
     path = Path(path)
@@ -121,6 +137,8 @@ def detect_layout(path: Path) -> str | None:
         return "kitti"
     if (path / "disp0GT.pfm").is_file():
         return "middlebury2014"
+    if _is_mb2005_scene(path):
+        return "middlebury2005"
     if _v2_gt_files(path):
         return "middlebury2003"
     return None
@@ -162,22 +180,42 @@ def load_middlebury2014(folder: Path, *, resolution: str | None = None) -> Scene
     return scene
 
 
-def load_middlebury_v2(folder: Path, *, gt_scale: float | None = None) -> Scene:
-    """A Middlebury 2001/2003 scene: 8-bit GT decoded with the per-scene scale."""
+def mb2005_divisor(path: Path, width: int) -> tuple[str, int]:
+    """``(size name, divisor)`` of a Middlebury 2005/2006 GT ``width`` px wide (:data:`MB2005_SIZES`).
+
+    Raises :class:`ConfigError` for a width of none of the sizes."""
+    for name, divisor, low, high in MB2005_SIZES:
+        if low <= width <= high:
+            return name, divisor
+    sizes = ", ".join(f"{name} {low}-{high}" for name, _, low, high in MB2005_SIZES)
+    raise ConfigError(f"{path}: {width} px wide, none of the Middlebury 2005/2006 sizes ({sizes} px); "
+                      "give the GT's divisor with --gt-scale")
+
+
+def load_middlebury_v2(folder: Path, *, gt_scale: float | None = None, mb2005: bool = False) -> Scene:
+    """A Middlebury 2001/2003 scene (8-bit GT decoded with the per-scene scale), or with ``mb2005``
+    a 2005/2006 scene (``view1``/``disp1``: the divisor from the image width, :func:`mb2005_divisor`)."""
     files = _v2_gt_files(folder)
     if not files:
         raise DataError(f"{folder}: no disp<k>.pgm/png ground truth found")
     left_k = min(files)
     key = folder.name.lower()
+    notes = []
+    if mb2005 and gt_scale is None:
+        width = read_image(files[left_k]).shape[1]
+        size, divisor = mb2005_divisor(files[left_k], width)
+        gt_scale = float(divisor)
+        notes.append(f"{size} size ({width} px wide): GT values / {divisor}")
     if gt_scale is None:
         if key not in V2_SCALES:
             raise ConfigError(f"{folder}: unknown v2 scene {folder.name!r}; give its GT scale with --gt-scale")
         gt_scale = V2_SCALES[key]
     scale = None if files[left_k].suffix.lower() == ".pfm" else gt_scale
     gt = read_disparity(files[left_k], scale=scale)
-    scene = Scene(name=folder.name, kind="middlebury-v2", gt=gt, masks={}, gt_path=files[left_k],
-                  gt_scale=gt_scale, ndisp=V2_NDISP.get(key), resolution="F",
-                  left_image=_first_image(folder, f"im{left_k}"))
+    left_image = _first_image(folder, f"view{left_k}") if mb2005 else _first_image(folder, f"im{left_k}")
+    scene = Scene(name=folder.name, kind="middlebury2005" if mb2005 else "middlebury-v2", gt=gt, masks={},
+                  gt_path=files[left_k], gt_scale=gt_scale, ndisp=None if mb2005 else V2_NDISP.get(key),
+                  resolution="F", left_image=left_image, notes=notes)
     official = {}
     for region in ("nonocc", "all", "disc"):
         for p in sorted(folder.iterdir()):
@@ -213,38 +251,116 @@ def kitti_names(root: Path) -> list[str]:
     return sorted(names)
 
 
+def _read_kitti_gt(path: Path) -> np.ndarray:
+    raw = read_image(path)
+    if raw.ndim != 2 or raw.dtype != np.uint16:
+        raise DataError(f"{path}: KITTI GT must be a 16-bit single-channel PNG")
+    return read_disparity(path, scale=256.0)
+
+
+#: KITTI region -> (GT folder of a root, file-name prefix of a frame folder).
+_KITTI_REGIONS = {"nonocc": ("disp_noc_0", "disp_noc"), "all": ("disp_occ_0", "disp_occ")}
+
+
+def kitti_region(path: Path) -> str:
+    """The region a lone KITTI GT file scores: ``nonocc`` when it or its folder is named
+    ``disp_noc*``, else ``all`` (KITTI's occ)."""
+    named = [path.stem.lower(), path.parent.name.lower()]
+    return "nonocc" if any(n.startswith("disp_noc") for n in named) else "all"
+
+
+def load_kitti_file(path: Path, *, name: str | None = None) -> Scene:
+    """One KITTI GT file on its own (``eval RESULT gt.png --dataset kitti``): its region from
+    :func:`kitti_region`, the other region not scored (a note, not a failure)."""
+    path = Path(path)
+    if path.suffix.lower() != ".png":
+        raise DataError(f"{path}: KITTI GT is a 16-bit PNG")
+    region = kitti_region(path)
+    other = "all" if region == "nonocc" else "nonocc"
+    return _kitti_scene(name or path.stem, {region: path},
+                        notes=[f"{other} not scored: only {_KITTI_REGIONS[region][1]} GT given"])
+
+
+def kitti_frame_files(folder: Path) -> dict[str, Path]:
+    """The GT files of a folder holding one KITTI frame: ``disp_noc*.png`` and/or ``disp_occ*.png``
+    by region; {} when it holds neither. Two files of one region are an error naming both."""
+    found: dict[str, Path] = {}
+    for p in sorted(folder.glob("*.png")):
+        for region, (_, prefix) in _KITTI_REGIONS.items():
+            if p.is_file() and p.stem.lower().startswith(prefix):
+                if region in found:
+                    raise DataError(f"{folder}: two {prefix} GT files ({found[region].name} and {p.name}); keep one")
+                found[region] = p
+    return found
+
+
+def kitti_flat_names(folder: Path) -> list[str]:
+    """Frames of a GT folder without disp_noc_0/ or disp_occ_0/: the folder itself when it holds
+    one frame's ``disp_noc*``/``disp_occ*`` files, else one frame per ``<name>.png``."""
+    if kitti_frame_files(folder):
+        return [folder.name]
+    return sorted(p.stem for p in folder.glob("*.png") if p.is_file())
+
+
 def load_kitti(root: Path, name: str) -> Scene:
-    """A KITTI 2015 frame ``name`` (e.g. ``000000_10``) from a root with disp_noc_0/disp_occ_0."""
-    maps: dict[str, np.ndarray] = {}
-    paths = {}
-    for region, sub in (("nonocc", "disp_noc_0"), ("all", "disp_occ_0")):
+    """A KITTI 2015 frame ``name`` (e.g. ``000000_10``).
+
+    ``root`` is a KITTI root with ``disp_noc_0/`` and/or ``disp_occ_0/`` (a region whose folder is
+    absent is noted and not scored; a frame missing from a folder that exists is an error), or
+    a folder of GT files: ``<name>.png`` (:func:`load_kitti_file`), one frame's ``disp_noc*.png``
+    and/or ``disp_occ*.png``, or a single PNG.
+    """
+    if not is_kitti_root(root):
+        if (root / f"{name}.png").is_file():
+            return load_kitti_file(root / f"{name}.png", name=name)
+        frame = kitti_frame_files(root)
+        if frame:
+            missing = [r for r in _KITTI_REGIONS if r not in frame]
+            return _kitti_scene(name, frame, notes=[f"{r} not scored: no {_KITTI_REGIONS[r][1]}*.png in {root}"
+                                                    for r in missing])
+        pngs = sorted(p for p in root.glob("*.png") if p.is_file())
+        if len(pngs) == 1:
+            return load_kitti_file(pngs[0], name=name)
+        raise DataError(f"{root}: no KITTI GT for {name!r} ({name}.png, disp_noc*.png or disp_occ*.png; or a "
+                        "root with disp_noc_0/ or disp_occ_0/)")
+    paths, errors, notes = {}, [], []
+    for region, (sub, _) in _KITTI_REGIONS.items():
         p = root / sub / f"{name}.png"
         if p.is_file():
-            raw = read_image(p)
-            if raw.ndim != 2 or raw.dtype != np.uint16:
-                raise DataError(f"{p}: KITTI GT must be a 16-bit single-channel PNG")
-            maps[region] = read_disparity(p, scale=256.0)
             paths[region] = p
-    if not maps:
+        elif (root / sub).is_dir():
+            errors.append((region, f"{p}: missing, {region} not scored"))
+        else:
+            notes.append(f"{region} not scored: no {sub}/ in the GT")
+    if not paths:
         raise DataError(f"{root}: no KITTI GT for {name!r} in disp_noc_0/ or disp_occ_0/")
-    gt = maps.get("all", maps.get("nonocc"))
-    scene = Scene(name=name, kind="kitti", gt=gt, masks={}, gt_path=paths.get("all", paths.get("nonocc")),
-                  left_image=(root / "image_2" / f"{name}.png") if (root / "image_2" / f"{name}.png").is_file() else None)
-    for region in ("nonocc", "all"):
+    image = root / "image_2" / f"{name}.png"
+    obj = root / "obj_map" / f"{name}.png"
+    return _kitti_scene(name, paths, errors=errors, notes=notes, left_image=image if image.is_file() else None,
+                        obj_map=obj if obj.is_file() else None)
+
+
+def _kitti_scene(name: str, paths: dict[str, Path], *, errors: list[tuple[str, str]] = (), notes: list[str] = (),
+                 left_image: Path | None = None, obj_map: Path | None = None) -> Scene:
+    """A KITTI scene from its GT files by region (``errors``: regions whose GT is missing)."""
+    maps = {region: _read_kitti_gt(p) for region, p in paths.items()}
+    main = "all" if "all" in maps else "nonocc"
+    gt = maps[main]
+    scene = Scene(name=name, kind="kitti", gt=gt, masks={}, gt_path=paths[main], left_image=left_image,
+                  notes=list(notes))
+    for region in _KITTI_REGIONS:
         if region in maps:
             if maps[region].shape != gt.shape:
                 raise DataError(f"{paths[region]}: size differs from the other KITTI GT map")
             scene.mask_gt[region] = maps[region]
             scene.masks[region] = np.isfinite(maps[region])
-        else:
-            scene.masks[region] = None
-            scene.errors.append(f"{root / ('disp_noc_0' if region == 'nonocc' else 'disp_occ_0')}/{name}.png: "
-                                f"missing, {region} not scored")
-    obj = root / "obj_map" / f"{name}.png"
-    if obj.is_file():
-        scene.obj_map = read_image(obj, gray=True)
+    for region, message in errors:
+        scene.masks[region] = None
+        scene.errors.append(message)
+    if obj_map is not None:
+        scene.obj_map = read_image(obj_map, gray=True)
         if scene.obj_map.shape != gt.shape:
-            raise DataError(f"{obj}: {scene.obj_map.shape[1]}x{scene.obj_map.shape[0]} but the GT is "
+            raise DataError(f"{obj_map}: {scene.obj_map.shape[1]}x{scene.obj_map.shape[0]} but the GT is "
                             f"{gt.shape[1]}x{gt.shape[0]}")
     return scene
 
@@ -256,6 +372,8 @@ def load_scene(path: Path, *, dataset: str | None = None, gt_scale: float | None
     if not path.is_dir():
         raise DataError(f"{path}: not a folder")
     kind = dataset or detect_layout(path)
+    if kind == "middlebury2005":
+        return load_middlebury_v2(path, gt_scale=gt_scale, mb2005=True)
     if kind == "middlebury2014":
         if not (path / "disp0GT.pfm").is_file():
             raise DataError(f"{path}: no disp0GT.pfm (Middlebury 2014 layout)")
@@ -264,7 +382,8 @@ def load_scene(path: Path, *, dataset: str | None = None, gt_scale: float | None
         return load_middlebury_v2(path, gt_scale=gt_scale)
     if kind == "kitti":
         raise ConfigError(f"{path}: a KITTI GT is a root with disp_noc_0/ and disp_occ_0/, not a scene folder")
-    raise DataError(f"{path}: no ground truth found (expected disp0GT.pfm, disp<k>.pgm or disp_noc_0/)")
+    raise DataError(f"{path}: no ground truth found (expected disp0GT.pfm, disp<k>.pgm, view1 + disp1.png "
+                    "or disp_noc_0/; KITTI GT files: --dataset kitti)")
 
 
 def load_gt_file(path: Path, *, dataset: str | None = None, gt_scale: float | None = None,
@@ -272,10 +391,25 @@ def load_gt_file(path: Path, *, dataset: str | None = None, gt_scale: float | No
     """A GT given as a single file: resolved to its scene when it sits in a known layout."""
     path = Path(path)
     parent = path.parent
-    if parent.name in ("disp_noc_0", "disp_occ_0") and path.suffix.lower() == ".png":
+    if parent.name in ("disp_noc_0", "disp_occ_0") and path.suffix.lower() == ".png" and dataset in (None, "kitti"):
         return load_kitti(parent.parent, path.stem)
+    if dataset == "kitti":
+        return load_kitti_file(path)
     if path.name == "disp0GT.pfm" or _V2_GT.match(path.name) and detect_layout(parent):
         return load_scene(parent, dataset=dataset, gt_scale=gt_scale, resolution=resolution)
+    if dataset == "middlebury2005":
+        if gt_scale is None:
+            gt_scale = float(mb2005_divisor(path, read_image(path).shape[1])[1])
+        dataset = "middlebury2003"  # decoded with that divisor, scored by the v2 rules below
+    if dataset in ("middlebury2003", "middlebury2001"):
+        if gt_scale is None and path.suffix.lower() != ".pfm":
+            raise ConfigError(f"{path}: give the 8-bit GT's scale with --gt-scale (d = value / scale)")
+        gt = read_disparity(path, scale=None if path.suffix.lower() == ".pfm" else gt_scale)
+        nonocc = derive_nonocc_mask(gt, None)
+        scene = Scene(name=path.stem, kind="middlebury-v2", gt=gt, masks={"nonocc": nonocc, "all": np.isfinite(gt)},
+                      gt_path=path, gt_scale=gt_scale, resolution="F")
+        scene.mask_notes["nonocc"] = DERIVED_NOTE
+        return scene
     # Generic GT file: only "all" can be scored.
     scale = gt_scale
     if path.suffix.lower() == ".png" and scale is None:
@@ -283,7 +417,8 @@ def load_gt_file(path: Path, *, dataset: str | None = None, gt_scale: float | No
     gt = read_disparity(path, scale=scale)
     scene = Scene(name=path.stem, kind="generic", gt=gt, masks={"nonocc": None, "all": np.isfinite(gt)},
                   gt_path=path, resolution=resolution or "F")
-    scene.errors.append(f"{path}: a bare GT file has no non-occlusion mask, nonocc not scored")
+    hint = " (a KITTI GT: --dataset kitti scores it by KITTI's rules)" if scale == 256.0 and gt_scale is None else ""
+    scene.errors.append(f"{path}: a bare GT file has no non-occlusion mask, nonocc not scored{hint}")
     return scene
 
 
@@ -302,9 +437,10 @@ def find_gt_scenes(gt_dir: Path, *, dataset: str | None = None, max_depth: int =
     if not gt_dir.is_dir():
         raise DataError(f"{gt_dir}: ground-truth folder not found")
     if dataset == "kitti" or (dataset is None and is_kitti_root(gt_dir)):
-        if not is_kitti_root(gt_dir):
-            raise DataError(f"{gt_dir}: no disp_noc_0/ or disp_occ_0/ folder (KITTI layout)")
-        return [GTEntry(n, "kitti", gt_dir) for n in kitti_names(gt_dir)]
+        names = kitti_names(gt_dir) if is_kitti_root(gt_dir) else kitti_flat_names(gt_dir)
+        if not names:
+            raise DataError(f"{gt_dir}: no KITTI GT (disp_noc_0/ or disp_occ_0/ folders, or <name>.png files)")
+        return [GTEntry(n, "kitti", gt_dir) for n in names]
     own = detect_layout(gt_dir)
     if own is not None and own != "kitti":
         return [GTEntry(gt_dir.name, dataset or own, gt_dir)]
@@ -327,7 +463,8 @@ def find_gt_scenes(gt_dir: Path, *, dataset: str | None = None, max_depth: int =
 
     walk(gt_dir, 1)
     if not found:
-        raise DataError(f"{gt_dir}: no ground-truth scenes found (disp0GT.pfm, disp<k>.pgm, disp_noc_0/)")
+        raise DataError(f"{gt_dir}: no ground-truth scenes found (disp0GT.pfm, disp<k>.pgm, view1 + disp1.png, "
+                        "disp_noc_0/; KITTI GT files: --dataset kitti)")
     return found
 
 

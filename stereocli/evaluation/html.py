@@ -14,7 +14,7 @@ from ..errors import check_outputs_free
 from ..io.atomic import write_text
 from .api import EvalReport
 from .maps import scene_images
-from .report import format_table, metric_columns
+from .report import format_table, region_table
 
 #: Previews wider than this are downscaled in the HTML (keeps the file small).
 MAX_PREVIEW_WIDTH = 480
@@ -31,24 +31,14 @@ def _png_base64(rgb: np.ndarray) -> str:
 
 
 def _table_html(report: EvalReport, region: str) -> str:
-    cols = metric_columns(report)
-    rows = ["<tr><th>scene</th><th>weight</th>" + "".join(f"<th>{html.escape(c)}</th>" for c in cols)
-            + "<th>time</th></tr>"]
-
-    def cell(v):
-        return "-" if v is None else f"{v:.2f}"
-
-    for s in report.scenes:
-        m = s.metrics.get(region) or {}
-        rows.append(f"<tr><td>{html.escape(s.name)}</td><td>{s.weight:g}</td>"
-                    + "".join(f"<td>{cell(m.get(c))}</td>" for c in cols)
-                    + f"<td>{'-' if s.time is None else f'{s.time:.3g}'}</td></tr>")
-    avg = report.average
-    m = avg.get(region) or {}
-    rows.append(f"<tr class=avg><td>average</td><td>{avg['weight']:g}</td>"
-                + "".join(f"<td>{cell(m.get(c))}</td>" for c in cols)
-                + f"<td>{'-' if avg.get('time') is None else format(avg['time'], '.3g')}</td></tr>")
-    return "<table>" + "\n".join(rows) + "</table>"
+    """The region's table with the text report's columns (:func:`~stereocli.evaluation.report.region_table`)."""
+    header, rows = region_table(report, region)
+    lines = ["<tr><th>scene</th>" + "".join(f"<th>{html.escape(h)}</th>" for h in header) + "</tr>"]
+    for i, (name, cells) in enumerate(rows):
+        average = bool(report.scenes) and i == len(rows) - 1
+        lines.append(("<tr class=avg>" if average else "<tr>") + f"<td>{html.escape(name)}</td>"
+                     + "".join(f"<td>{html.escape(c)}</td>" for c in cells) + "</tr>")
+    return "<table>" + "\n".join(lines) + "</table>"
 
 
 def render_html(report: EvalReport, title: str = "stereocli eval") -> str:

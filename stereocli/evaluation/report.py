@@ -77,6 +77,16 @@ def _rows(report: EvalReport, region: str, cols: list[str], with_time: bool) -> 
     return rows
 
 
+def region_table(report: EvalReport, region: str) -> tuple[list[str], list[tuple[str, list[str]]]]:
+    """One region's table as every format shows it: the header after ``scene`` (weight, the metric
+    columns, and time, s/MP, s/GD when a scene has a time) and the rows ``(scene, cells)``, the
+    (weighted) average last."""
+    cols = metric_columns(report)
+    with_time = _has_time(report)
+    header = ["weight"] + cols + ([label for _, label in _TIME_COLS] if with_time else [])
+    return header, _rows(report, region, cols, with_time)
+
+
 def format_text(report: EvalReport) -> str:
     cols = metric_columns(report)
     with_time = _has_time(report)

@@ -26,7 +26,8 @@ __all__ = ["RECTIFY_FIRST", "ROWS_NOT_ALIGNED", "check_range_meets_image", "meas
 #: The survey's warning for a pair whose rows are off by more than the alignment threshold, and
 #: its advice (replaced by what ``row_align`` did when the matching corrected the rows).
 ROWS_NOT_ALIGNED = "rows not aligned"
-RECTIFY_FIRST = "rectify the pair first"
+RECTIFY_FIRST = ("rectify the pair first (stereocli rectify --calib RIG.yml, or stereocli rectify --uncalibrated "
+                 "without a calibration)")
 
 
 def _named(name: str, message: str) -> str:

@@ -1,24 +1,31 @@
-"""Finding stereo pairs in what the user passed on the command line: every pairing rule.
+"""Finding stereo pairs in what the user passed on the command line: the one pairing rule of
+``calibrate``, ``rectify``, ``match``, ``triangulate --scenes`` and ``eval`` (docs/formats.md, "Input
+layouts").
 
-Accepted forms (mixed freely):
+On the command line: two image files (left, right), two folders of images (left, right), or
+folders. A folder holds exactly one of these layouts; a folder holding two is an error naming
+them, never a guess:
 
-* two image files: ``left.png right.png`` (named by the left file's stem); two files of a scene
-  folder named as a scene pair (``DIR/im0.png DIR/im1.png``) are that scene: named by the folder,
-  with its ``calib.txt`` and valid masks;
-* a scene folder holding a known left/right pair (``im0/im1`` Middlebury 2014, ``im2/im6``
-  2001/2003, ``im3/im4`` Tsukuba copy, ``left/right``), with optional ``calib.txt`` and valid
-  masks ``valid0.png``/``valid1.png`` written by ``rectify`` (named by the folder);
-* a folder of scene folders;
-* a folder with ``left/`` and ``right/`` subfolders, or the two folders themselves, paired by
-  file stem (``left/0001.png`` with ``right/0001.png``; a ``left_``/``right_`` or
-  ``_left``/``_right`` prefix or suffix on the stem is ignored for pairing);
-* calibration photos (:func:`find_calibration_pairs`; ``rectify`` with ``side_words``): a
-  folder of ``left*``/``right*`` files keyed by the stem with the side word removed
-  (``left01.jpg`` ↔ ``right01.jpg``, ``img_left_7`` ↔ ``img_right_7``), or ``left/`` +
-  ``right/`` subfolders keyed the same way, in natural order (``2`` before ``10``).
+* **a scene**: a known pair of file stems (:data:`SCENE_PAIRS`: ``im0``/``im1``, ``im2``/``im6``,
+  ``im3``/``im4``, ``view1``/``view5``, ``left``/``right``), with optional ``calib.txt`` and valid
+  masks ``valid0.png``/``valid1.png``; named by the folder. When several known pairs are present
+  (a full Middlebury 2001 set holds ``im0`` ... ``im8``), the one whose left view has ground
+  truth (``disp2.pgm`` for ``im2``) is the scene; otherwise the folder is ambiguous;
+* **side-word files**: ``left01``/``right01``, ``left_0001``/``right_0001``, ``0001_left``/
+  ``0001_right``, ``img_left_7``/``img_right_7``: the side word stands as a word of its own (a
+  letter next to it makes it part of another word: ``bright`` names no side); paired and named
+  by the stem without the side word (``01``, ``0001``, ``img_7``);
+* **two subfolders**: ``left/`` + ``right/`` or ``cam0/`` + ``cam1/``, paired and named by the stem
+  without its own side word or ``l``/``r`` prefix or suffix (``left/0001_l.png`` with
+  ``right/0001_r.png`` is ``0001``);
+* **scene folders**: subfolders that are scenes (each named by its folder).
 
-Files that cannot be paired are returned as problems (the caller reports them as failed
-items), never dropped silently; calibration photos without a partner are an error.
+Two files are named like the folder they come from: a scene pair of one folder by the folder,
+side-word partners by their common name, others by the left file's stem. So a pair has the same
+name in every subcommand, and ``rectify -> match -> triangulate -> eval`` chain by name.
+
+Files that cannot be paired are returned as problems (the caller reports them as failed items,
+or ``calibrate`` refuses the folder), never dropped silently.
 
 A pair's name is its output folder's name (``OUTDIR/<name>/``), made safe by :func:`output_name`.
 """
@@ -39,8 +46,11 @@ RESERVED_NAMES = ("run.json",)
 #: included), which would break paths, one-line messages and text tables.
 _UNSAFE = re.compile(r"[/\\\x00-\x1f\x7f-\x9f\u2028\u2029]")
 
-#: Known (left, right) file stems inside a scene folder, in priority order.
-SCENE_PAIRS = (("im0", "im1"), ("im2", "im6"), ("im3", "im4"), ("left", "right"), ("view1", "view5"))
+#: Known (left, right) file stems of a scene folder: Middlebury 2014, 2001/2003, the Tsukuba copy
+#: in the project's data, Middlebury 2005/2006, and a plain left/right pair.
+SCENE_PAIRS = (("im0", "im1"), ("im2", "im6"), ("im3", "im4"), ("view1", "view5"), ("left", "right"))
+#: Subfolder pairs holding the left and the right views.
+SUBFOLDER_PAIRS = (("left", "right"), ("cam0", "cam1"))
 
 
 @dataclass
@@ -90,15 +100,153 @@ def _by_stem(folder: Path) -> dict[str, Path]:
     return {p.stem: p for p in image_files(folder)}
 
 
+def natural_key(key: str) -> list:
+    """Sort key that orders digit runs by value (``2`` before ``10``)."""
+    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", key)]
+
+
+def _table() -> str:
+    """The layouts, for messages."""
+    scenes = ", ".join(f"{a}/{b}" for a, b in SCENE_PAIRS)
+    return (f"scene files {scenes}; left01/right01, left_0001 or 0001_left files; left/ + right/ or "
+            "cam0/ + cam1/ subfolders; scene folders")
+
+
+# --------------------------------------------------------------------------- side words
+
+_SEPARATORS = "_-. "
+#: A side word standing as a word of its own: no letter right before or after it.
+_SIDE_WORD = re.compile(r"(?<![a-z])(left|right)(?![a-z])", re.IGNORECASE)
+#: A one-letter side affix (``0001_l``, ``r-0001``), only inside a folder that names the side.
+_SIDE_LETTER = {side: re.compile(rf"^{side[0]}[_\-. ]|[_\-. ]{side[0]}$", re.IGNORECASE) for side in ("left", "right")}
+
+
+def _without(stem: str, start: int, end: int) -> str:
+    """``stem`` without ``stem[start:end]`` and the separators around it, one separator kept
+    between what remains on both sides (``img_left_7`` -> ``img_7``)."""
+    before, after = stem[:start], stem[end:]
+    head, tail = before.rstrip(_SEPARATORS), after.lstrip(_SEPARATORS)
+    if not (head and tail):
+        return head + tail
+    removed = before[len(head):] + after[: len(after) - len(tail)]
+    return head + removed[:1] + tail
+
+
+def side_key(stem: str) -> tuple[str | None, str]:
+    """``(side, key)``: the side word of ``stem`` (``"left"``/``"right"``; None without one, or
+    when it names both sides) and the stem without it (``"img_left_7"`` -> ``("left", "img_7")``,
+    ``"0001_right"`` -> ``("right", "0001")``)."""
+    found = list(_SIDE_WORD.finditer(stem))
+    if not found or len({m.group(1).lower() for m in found}) > 1:
+        return None, stem
+    m = found[0]
+    return m.group(1).lower(), _without(stem, m.start(), m.end())
+
+
+def _folder_key(stem: str, side: str) -> str:
+    """The pairing key of ``stem`` in a folder of ``side`` images: without its own side word,
+    else without a one-letter ``l``/``r`` prefix or suffix, else the stem itself."""
+    for m in _SIDE_WORD.finditer(stem):
+        if m.group(1).lower() == side:
+            return _without(stem, m.start(), m.end()) or stem
+    m = _SIDE_LETTER[side].search(stem)
+    if m:
+        return (stem[: m.start()] + stem[m.end():]).strip(_SEPARATORS) or stem
+    return stem
+
+
+def _pair_by_key(lefts: dict[str, Path], rights: dict[str, Path], left_where: str,
+                 right_where: str) -> tuple[list[StereoInput], list[str]]:
+    """Pairs of the keys both sides hold (in natural order), and the unpaired files as problems."""
+    pairs = [StereoInput(name=k, left=str(lefts[k]), right=str(rights[k]))
+             for k in sorted(lefts.keys() & rights.keys(), key=natural_key)]
+    problems = [f"{lefts[k]}: no matching right image in {right_where}"
+                for k in sorted(lefts.keys() - rights.keys(), key=natural_key)]
+    problems += [f"{rights[k]}: no matching left image in {left_where}"
+                 for k in sorted(rights.keys() - lefts.keys(), key=natural_key)]
+    return pairs, problems
+
+
+def _keyed(files: list[Path], key_of) -> dict[str, Path]:
+    """``files`` by key; two files with one key are an error naming both."""
+    table: dict[str, Path] = {}
+    for p in files:
+        key = key_of(p)
+        if key in table:
+            raise DataError(f"ambiguous pair name {key!r}: {table[key]} and {p} are both its image; "
+                            "rename or remove one")
+        table[key] = p
+    return table
+
+
+def pair_folders(left_dir: Path, right_dir: Path) -> tuple[list[StereoInput], list[str]]:
+    """Pair the images of ``left_dir`` and ``right_dir`` by key (the stem without its own side
+    word or ``l``/``r`` affix); returns pairs and unpaired-file problems."""
+    lefts = _keyed(image_files(left_dir), lambda p: _folder_key(p.stem, "left"))
+    rights = _keyed(image_files(right_dir), lambda p: _folder_key(p.stem, "right"))
+    return _pair_by_key(lefts, rights, str(left_dir), str(right_dir))
+
+
+def _side_word_files(images: list[Path]) -> list[Path]:
+    """The images whose stem holds one side word and more (``left01``, not ``left``)."""
+    out = []
+    for p in images:
+        side, key = side_key(p.stem)
+        if side and key:
+            out.append(p)
+    return out
+
+
+def pair_side_word_files(folder: Path, images: list[Path]) -> tuple[list[StereoInput], list[str]]:
+    """Pair ``left*``/``right*`` files of one folder by the stem without the side word."""
+    by_side: dict[str, list[Path]] = {"left": [], "right": []}
+    for p in _side_word_files(images):
+        by_side[side_key(p.stem)[0]].append(p)
+    lefts = _keyed(by_side["left"], lambda p: side_key(p.stem)[1])
+    rights = _keyed(by_side["right"], lambda p: side_key(p.stem)[1])
+    return _pair_by_key(lefts, rights, str(folder), str(folder))
+
+
 # --------------------------------------------------------------------------- scene folders
 
+def _has_ground_truth(folder: Path, left_stem: str) -> bool:
+    """Whether ``folder`` holds the ground truth of view ``left_stem`` (``disp2.pgm`` for ``im2``,
+    ``disp0GT.pfm`` for ``im0``, ``disp1.png`` for ``view1``)."""
+    digits = re.sub(r"\D", "", left_stem)
+    if not digits:
+        return False
+    return any(p.is_file() for p in folder.glob(f"disp{digits}*") if re.fullmatch(
+        rf"disp{digits}(GT)?\.(pfm|pgm|png)", p.name, re.IGNORECASE))
+
+
+def _scene_files(folder: Path, stems: dict[str, Path] | None = None) -> list[tuple[Path, Path]]:
+    """The known scene pairs of ``folder`` (:data:`SCENE_PAIRS`); of several, the one whose left
+    view has ground truth when exactly one has."""
+    stems = _by_stem(folder) if stems is None else stems
+    found = [(stems[a], stems[b]) for a, b in SCENE_PAIRS if a in stems and b in stems]
+    if len(found) > 1:
+        with_gt = [pair for pair in found if _has_ground_truth(folder, pair[0].stem)]
+        if len(with_gt) == 1:
+            return with_gt
+    return found
+
+
+def _ambiguous_scene(folder: Path, found: list[tuple[Path, Path]]) -> DataError:
+    names = " and ".join(f"{a.name}/{b.name}" for a, b in found)
+    return DataError(f"{folder}: ambiguous scene: it holds the pairs {names}; give the two files of the "
+                     f"one to use (e.g. {found[0][0]} {found[0][1]})")
+
+
 def scene_pair(folder: Path) -> StereoInput | None:
-    """The pair inside a scene folder, or None when the folder is not a scene."""
-    images = _by_stem(folder)
-    for left, right in SCENE_PAIRS:
-        if left in images and right in images:
-            return _scene_input(folder, images[left], images[right])
-    return None
+    """The pair inside a scene folder, or None when the folder is not a scene.
+
+    Raises :class:`DataError` naming the candidates when it holds several known pairs and ground
+    truth singles out none of them.
+    """
+    found = _scene_files(folder)
+    if len(found) > 1:
+        raise _ambiguous_scene(folder, found)
+    return _scene_input(folder, *found[0]) if found else None
 
 
 def _scene_input(folder: Path, left: Path, right: Path) -> StereoInput:
@@ -117,131 +265,155 @@ def _scene_input(folder: Path, left: Path, right: Path) -> StereoInput:
 
 
 def file_pair(left: Path, right: Path) -> StereoInput:
-    """Two image files given on the command line: the scene they belong to when they sit in one
-    folder under a scene pair's names (``im0``/``im1``, ``left``/``right``, ...), else a pair
-    named by the left file's stem."""
+    """Two image files given on the command line, named as their folder would name them: a scene
+    pair of one folder (``im0``/``im1``, ``left``/``right``, ...) is that scene (named by the folder,
+    with its calib.txt and masks); files of ``left/`` and ``right/`` (``cam0/``, ``cam1/``) and
+    side-word partners (``left01``/``right01``) are named by their common key (``01``); other
+    files by the left file's stem."""
     if left.parent.resolve() == right.parent.resolve() and (left.stem, right.stem) in SCENE_PAIRS:
         return _scene_input(left.parent, left, right)
-    return StereoInput(name=left.stem, left=str(left), right=str(right))
+    if (left.parent.name.lower(), right.parent.name.lower()) in SUBFOLDER_PAIRS:
+        lkey, rkey = _folder_key(left.stem, "left"), _folder_key(right.stem, "right")
+        return StereoInput(name=lkey if lkey == rkey else left.stem, left=str(left), right=str(right))
+    (lside, lkey), (rside, rkey) = side_key(left.stem), side_key(right.stem)
+    partners = (lside, rside) == ("left", "right") and lkey == rkey and lkey
+    return StereoInput(name=lkey if partners else left.stem, left=str(left), right=str(right))
 
 
-def _pair_names() -> str:
-    return ", ".join(f"{a}/{b}" for a, b in SCENE_PAIRS)
+# --------------------------------------------------------------------------- one folder
+
+def _subfolders(folder: Path) -> dict[str, Path]:
+    """Subfolders by lower-case name (hidden ones, such as a batch's staging folder, left out)."""
+    return {p.name.lower(): p for p in sorted(folder.iterdir()) if p.is_dir() and not p.name.startswith(".")}
 
 
-# --------------------------------------------------------------------------- left/ + right/ folders by stem
+def _layouts(folder: Path) -> list[tuple[str, str]]:
+    """The layouts ``folder`` holds, as ``(kind, what)`` with ``what`` naming the files."""
+    images = image_files(folder)
+    subs = _subfolders(folder)
+    found = []
+    scene = _scene_files(folder, {p.stem: p for p in images})
+    if scene:
+        found.append(("scene", " and ".join(f"{a.name}/{b.name}" for a, b in scene)))
+    side = [p for p in _side_word_files(images) if not any(p in pair for pair in scene)]
+    if side:
+        found.append(("side-word files", f"{len(side)} left*/right* files ({side[0].name}, ...)"))
+    paired_dirs = set()
+    for a, b in SUBFOLDER_PAIRS:
+        if a in subs and b in subs:
+            found.append(("subfolders", f"{subs[a].name}/ + {subs[b].name}/"))
+            paired_dirs |= {a, b}
+    scenes = [d for key, d in subs.items() if key not in paired_dirs and _scene_files(d)]
+    if scenes:
+        found.append(("scene folders", f"{len(scenes)} scene folder(s) ({scenes[0].name}/, ...)"))
+    return found
 
-_SIDE_AFFIX = re.compile(r"(^(left|right|l|r)[_-]?)|([_-]?(left|right|l|r)$)", re.IGNORECASE)
 
-
-def _stem_key(stem: str) -> str:
-    return _SIDE_AFFIX.sub("", stem) or stem
-
-
-def pair_folders(left_dir: Path, right_dir: Path) -> tuple[list[StereoInput], list[str]]:
-    """Pair ``left_dir`` and ``right_dir`` images by stem; returns pairs and unpaired-file problems."""
-    lefts = {_stem_key(s): p for s, p in _by_stem(left_dir).items()}
-    rights = {_stem_key(s): p for s, p in _by_stem(right_dir).items()}
-    pairs = [StereoInput(name=k, left=str(lefts[k]), right=str(rights[k])) for k in sorted(lefts.keys() & rights.keys())]
-    problems = [f"{lefts[k]}: no matching right image in {right_dir}" for k in sorted(lefts.keys() - rights.keys())]
-    problems += [f"{rights[k]}: no matching left image in {left_dir}" for k in sorted(rights.keys() - lefts.keys())]
+def _discover_folder(folder: Path) -> tuple[list[StereoInput], list[str]]:
+    """The pairs of one folder given on the command line (see the module's docstring)."""
+    layouts = _layouts(folder)
+    if len(layouts) > 1:
+        raise DataError(f"{folder}: ambiguous: it holds {' and '.join(what for _, what in layouts)}; "
+                        "keep one layout per folder, or give the folders or files to pair")
+    images = image_files(folder)
+    subs = _subfolders(folder)
+    kind = layouts[0][0] if layouts else None
+    if kind == "scene":
+        return [scene_pair(folder)], []
+    if kind == "side-word files":
+        pairs, problems = pair_side_word_files(folder, images)
+        side = set(_side_word_files(images))
+        problems += [f"{p}: no left/right word in its name (the folder pairs left*/right* files); not paired"
+                     for p in images if p not in side]
+        return pairs, problems
+    if kind == "subfolders":
+        a, b = next((a, b) for a, b in SUBFOLDER_PAIRS if a in subs and b in subs)
+        pairs, problems = pair_folders(subs[a], subs[b])
+        problems += [f"{p}: beside {subs[a].name}/ + {subs[b].name}/ (which hold the pairs); not paired"
+                     for p in images]
+        return pairs, problems
+    pairs, problems = [], []
+    for sub in subs.values():
+        try:
+            scene = scene_pair(sub)
+        except DataError as exc:  # this scene's failure, not the batch's
+            problems.append(str(exc))
+            continue
+        if scene:
+            pairs.append(scene)
+            continue
+        inner = _layouts(sub)
+        if inner:  # pairs of their own, named by their files: give the folder itself
+            problems.append(f"{sub}: holds {inner[0][1]}, not one scene; give {sub} itself to pair them")
+        elif image_files(sub):
+            problems.append(f"{sub}: holds images but no recognised left/right pair ({_table()})")
+    if kind == "scene folders":
+        problems += [f"{p}: beside scene folders; not paired" for p in images]
+    elif images:
+        problems.append(f"{folder}: holds images but no recognised left/right pair ({_table()})")
+    elif not subs:
+        raise DataError(f"{folder}: empty folder (no images or scene folders)")
     return pairs, problems
 
 
-# --------------------------------------------------------------------------- side words (calibration photos)
-
-_SIDE_WORD = re.compile(r"(left|right)", re.IGNORECASE)
-
-
-def side_key(stem: str) -> tuple[str | None, str]:
-    """``(side, key)``: the first side word of ``stem`` (``"left"``/``"right"``, None without
-    one) and the stem without it (``"img_left_7"`` -> ``("left", "img_7")``)."""
-    m = _SIDE_WORD.search(stem)
-    if not m:
-        return None, stem
-    key = (stem[: m.start()] + stem[m.end():]).strip("_-. ")
-    return m.group(1).lower(), key
+def _pairs_by_itself(folder: Path) -> bool:
+    """Whether ``folder`` holds pairs of its own (any layout but loose one-side images)."""
+    layouts = _layouts(folder)
+    if not layouts:
+        return bool(_subfolders(folder))
+    if [kind for kind, _ in layouts] != ["side-word files"]:
+        return True
+    sides = {side_key(p.stem)[0] for p in _side_word_files(image_files(folder))}
+    return len(sides) > 1
 
 
-def natural_key(key: str) -> list:
-    """Sort key that orders digit runs by value (``2`` before ``10``)."""
-    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", key)]
-
+# --------------------------------------------------------------------------- calibration photos
 
 def find_calibration_pairs(folder: str | Path) -> list[tuple[str, str, str]]:
-    """``(name, left_path, right_path)`` pairs in ``folder`` (sorted naturally by name).
+    """``(name, left_path, right_path)`` of the photo pairs in ``folder`` (the same layouts and
+    names as :func:`discover_pairs`), sorted naturally by name.
 
-    Raises :class:`DataError` when a photo has no partner or nothing pairs.
+    Raises :class:`DataError` when the folder is ambiguous, a photo has no partner, or nothing
+    pairs.
     """
     folder = Path(folder)
     if not folder.is_dir():
-        raise DataError(f"{folder}: not a folder (calibrate expects a folder with left/ + right/ or left*/right* images)")
-    left_dir, right_dir = folder / "left", folder / "right"
-    lefts: dict[str, Path] = {}
-    rights: dict[str, Path] = {}
-    if left_dir.is_dir() and right_dir.is_dir():
-        for side, d, table in (("left", left_dir, lefts), ("right", right_dir, rights)):
-            for p in image_files(d):
-                found, key = side_key(p.stem)
-                table[(key if found == side else p.stem) or p.stem] = p
-    else:
-        for p in image_files(folder):
-            side, key = side_key(p.stem)
-            if side == "left":
-                lefts[key] = p
-            elif side == "right":
-                rights[key] = p
-        if not lefts and not rights:
-            raise DataError(f"{folder}: no calibration images (expected left/ + right/ subfolders or left*/right* files)")
-    only_left = sorted(lefts.keys() - rights.keys(), key=natural_key)
-    only_right = sorted(rights.keys() - lefts.keys(), key=natural_key)
-    if only_left or only_right:
-        first = lefts[only_left[0]] if only_left else rights[only_right[0]]
-        raise DataError(
-            f"{folder}: {len(lefts)} left and {len(rights)} right images do not pair up "
-            f"({first.name} has no partner; {len(only_left) + len(only_right)} unpaired in all)")
-    if not lefts:
-        raise DataError(f"{folder}: no calibration image pairs")
-    return [(k, str(lefts[k]), str(rights[k])) for k in sorted(lefts, key=natural_key)]
-
-
-def _is_side_word_folder(folder: Path) -> bool:
-    """A folder of ``left*``/``right*`` photos only (no scene pair, no ``left/`` subfolder)."""
-    if not folder.is_dir() or scene_pair(folder) or (folder / "left").is_dir():
-        return False
-    images = image_files(folder)
-    return bool(images) and all(side_key(f.stem)[0] for f in images)
+        raise DataError(f"{folder}: not a folder (calibrate expects a folder with left/ + right/ or left*/right* "
+                        "images)")
+    try:
+        pairs, problems = _discover_folder(folder)
+    except DataError as exc:
+        if "empty folder" not in str(exc):
+            raise
+        pairs, problems = [], []
+    if problems:
+        raise DataError(f"{folder}: the photos do not pair up ({problems[0]}; {len(problems)} unpaired in all)")
+    if not pairs:
+        raise DataError(f"{folder}: no calibration image pairs (expected {_table()})")
+    for pair in pairs:
+        pair.name = output_name(pair.name)
+    unique_names([(pair.name, pair.left) for pair in pairs])
+    return [(p.name, p.left, p.right) for p in sorted(pairs, key=lambda p: natural_key(p.name))]
 
 
 # --------------------------------------------------------------------------- command-line inputs
 
 def discover_pairs(inputs: list[str] | tuple[str, ...], *,
-                   side_words: bool = False) -> tuple[list[StereoInput], list[str]]:
-    """Resolve command-line inputs into stereo pairs.
+                   side_words: bool = True) -> tuple[list[StereoInput], list[str]]:
+    """Resolve command-line inputs into stereo pairs (every layout of the module's docstring).
 
-    Returns ``(pairs, problems)``; raises :class:`DataError` when an input does not exist or
-    nothing at all can be paired. Pair names are made safe (:func:`output_name`) and unique (a
-    clash is an error, since outputs are written to ``OUTDIR/<name>/``). With ``side_words``,
-    folders holding only ``left*``/``right*`` photos are paired as calibration photos (listed
-    first).
+    Returns ``(pairs, problems)``; raises :class:`DataError` when an input does not exist, a
+    folder is ambiguous, or nothing at all can be paired. Pair names are made safe
+    (:func:`output_name`) and unique (a clash is an error, since outputs are written to
+    ``OUTDIR/<name>/``). ``side_words`` is accepted for older callers: every command pairs
+    side-word files.
     """
-    if side_words:
-        pairs: list[StereoInput] = []
-        rest = []
-        for raw in inputs:
-            if _is_side_word_folder(Path(raw)):
-                pairs += [StereoInput(name=output_name(name), left=left, right=right)
-                          for name, left, right in find_calibration_pairs(raw)]
-            else:
-                rest.append(raw)
-        found, problems = discover_pairs(rest) if rest else ([], [])
-        unique_names([(pair.name, pair.left) for pair in pairs + found])
-        return pairs + found, problems
+    del side_words
     paths = [Path(p) for p in inputs]
     for p in paths:
         if not p.exists():
             raise DataError(f"{p}: no such file or folder")
-    pairs = []
+    pairs: list[StereoInput] = []
     problems: list[str] = []
     files = [p for p in paths if p.is_file()]
     folders = [p for p in paths if p.is_dir()]
@@ -249,8 +421,8 @@ def discover_pairs(inputs: list[str] | tuple[str, ...], *,
         if len(files) % 2:
             raise DataError(f"{files[-1]}: image files must be given in left/right pairs")
         pairs += [file_pair(left, right) for left, right in zip(files[0::2], files[1::2])]
-    if len(folders) == 2 and not any(scene_pair(f) or _has_subfolders(f) for f in folders):
-        # Two plain folders of images: left/ and right/.
+    if len(folders) == 2 and not any(_pairs_by_itself(f) for f in folders):
+        # Two folders of images: the left views and the right views.
         found, bad = pair_folders(folders[0], folders[1])
         pairs += found
         problems += bad
@@ -262,35 +434,9 @@ def discover_pairs(inputs: list[str] | tuple[str, ...], *,
     if not pairs:
         raise DataError(
             f"{', '.join(map(str, inputs))}: no stereo pairs found"
-            + (f" ({problems[0]})" if problems else " (expected im0/im1 scene folders, left/ + right/ folders or image pairs)")
+            + (f" ({problems[0]})" if problems else f" (expected {_table()})")
         )
     for pair in pairs:
         pair.name = output_name(pair.name)
     unique_names([(pair.name, pair.left) for pair in pairs])
-    return pairs, problems
-
-
-def _has_subfolders(folder: Path) -> bool:
-    return any(p.is_dir() for p in folder.iterdir())
-
-
-def _discover_folder(folder: Path) -> tuple[list[StereoInput], list[str]]:
-    scene = scene_pair(folder)
-    if scene:
-        return [scene], []
-    left, right = folder / "left", folder / "right"
-    if left.is_dir() and right.is_dir():
-        return pair_folders(left, right)
-    pairs, problems = [], []
-    subdirs = sorted(p for p in folder.iterdir() if p.is_dir() and not p.name.startswith("."))  # not staging folders
-    for sub in subdirs:
-        scene = scene_pair(sub)
-        if scene:
-            pairs.append(scene)
-        elif image_files(sub):
-            problems.append(f"{sub}: holds images but no recognised left/right pair ({_pair_names()})")
-    if not subdirs and image_files(folder):
-        problems.append(f"{folder}: holds images but no recognised left/right pair ({_pair_names()})")
-    if not subdirs and not image_files(folder):
-        raise DataError(f"{folder}: empty folder (no images or scene folders)")
     return pairs, problems

@@ -92,6 +92,7 @@ def plan_items(
     png16_scale: float | None = None,
     npy: bool = False,
     viz: bool = False,
+    viz_range: tuple[float, float] | None = None,
     confidence: bool = False,
     right: bool = False,
     keep_invalid: bool = False,
@@ -106,6 +107,7 @@ def plan_items(
 
     ``config`` is the effective config as a plain dict; ``split_strips`` spreads each pair's
     strips over the Dask cluster its task runs on (a pair with one strip runs whole).
+    ``viz_range`` (px) colours the previews, else calib.txt's vmin/vmax, else each map's robust range.
     """
     outdir = Path(outdir)
     if confidence:
@@ -136,7 +138,8 @@ def plan_items(
                 inputs[key] = getattr(pair, key)
         options = {"config": config, "min_disp": lo, "ndisp": nd, "range_source": info["range_source"],
                    "png16_scale": png16_scale, "keep_invalid": keep_invalid, "require_aligned": require_aligned,
-                   "vmin": info.get("vmin"), "vmax": info.get("vmax"), "record": record_info or {}}
+                   "vmin": viz_range[0] if viz_range else info.get("vmin"),
+                   "vmax": viz_range[1] if viz_range else info.get("vmax"), "record": record_info or {}}
         if info.get("note"):
             options["range_note"] = info["note"]
         if split_strips:
@@ -326,9 +329,9 @@ def match_item(item: WorkItem) -> dict:
     if "npy" in out:
         write_disparity(out["npy"], result.disparity)
     if "viz" in out:
-        from ..viz import colorize_disparity
+        from ..viz import disparity_preview
 
-        write_image(out["viz"], colorize_disparity(result.disparity, opts.get("vmin"), opts.get("vmax")))
+        write_image(out["viz"], disparity_preview(result.disparity, opts.get("vmin"), opts.get("vmax")))
     if "confidence" in out:
         write_pfm(out["confidence"], result.confidence)
     if "right" in out:

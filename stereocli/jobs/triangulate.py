@@ -66,6 +66,16 @@ def _find_inputs(inputs: list[str] | tuple[str, ...]) -> tuple[list[tuple[str, P
     return found, problems
 
 
+def _scene_pairs(scenes: str) -> dict:
+    """The pairs of ``--scenes`` by name, found by the rule of every subcommand
+    (:func:`~stereocli.io.pairs.discover_pairs`), so a disparity named as ``match`` named it finds
+    its pair's calib.txt and left image in any layout."""
+    from ..io.pairs import discover_pairs
+
+    pairs, _ = discover_pairs([scenes])
+    return {pair.name: pair for pair in pairs}
+
+
 def plan_items(inputs: list[str] | tuple[str, ...], output: str, *, calib: str | None = None,
                image: str | None = None, scenes: str | None = None, confidence: str | None = None,
                npy: bool = False, depth_format: str | None = None, depth_png16: bool = False,
@@ -85,6 +95,7 @@ def plan_items(inputs: list[str] | tuple[str, ...], output: str, *, calib: str |
                         + (f" ({problems[0]})" if problems else ""))
     if single and len(found) > 1:
         raise DataError(f"{output}: one output file for {len(found)} disparity maps; give a folder instead")
+    scene_pairs = _scene_pairs(scenes) if scenes else {}
     items = []
     for name, disp in found:
         def beside(fname: str) -> str | None:
@@ -94,6 +105,9 @@ def plan_items(inputs: list[str] | tuple[str, ...], output: str, *, calib: str |
             return None
 
         recorded = _match_inputs(disp.parent)
+        scene = scene_pairs.get(name)
+        if scene is not None:  # --scenes paired as match pairs them: the pair of the same name
+            recorded = {**recorded, **{k: v for k, v in (("calib", scene.calib), ("left", scene.left)) if v}}
         cal = calib or beside("calib.txt") or recorded.get("calib")
         if cal is None:
             problems.append(f"{disp}: no calibration (give --calib, or put calib.txt beside it or in --scenes/{name}/)")
