@@ -104,3 +104,79 @@ def run_cli(capsys):
         return CliRun(code, captured.out, captured.err)
 
     return run
+
+
+# -- markers -------------------------------------------------------------------------------------
+#
+# Three kinds of tests are marked from what they do, so no test can forget its marker:
+# ``shared_data`` (it uses the real scenes), ``subprocess`` (it starts processes: the command
+# line in a child, process pools, numba's build workers) and ``dask`` (it starts or reaches a
+# Dask cluster). Each of them is also ``slow``, so ``pytest -m "not slow"`` is the fast loop:
+# in-process tests on synthetic inputs. What a test does is read from its source, the fixtures
+# it uses and the functions of its own module it calls.
+
+import ast  # noqa: E402
+import inspect  # noqa: E402
+import re  # noqa: E402
+
+#: Source text that starts processes or a cluster.
+SPAWNS = {
+    "subprocess": re.compile(r"\bsubprocess\.|\bPopen\b|\bsys\.executable\b|ProcessPool|multiprocessing|"
+                             r"[\"'](?:-j|--jobs)[\"'],\s*[\"']?[2-9]|executor=[\"']process|_python\("),
+    "dask": re.compile(r"\bdask\b|\bdistributed\b|LocalCluster|--scheduler|scheduler=|executor=[\"']dask"),
+}
+
+
+def _called_names(source: str) -> set[str]:
+    """Names called in ``source`` (``f(...)`` and ``x.f(...)`` give ``f``)."""
+    try:
+        tree = ast.parse(inspect.cleandoc(source) if source.startswith((" ", "\t")) else source)
+    except SyntaxError:
+        return set()
+    names = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Call):
+            func = node.func
+            names.add(func.id if isinstance(func, ast.Name) else getattr(func, "attr", ""))
+    return names
+
+
+def _reach(function, module, seen: set[str]) -> str:
+    """The source of ``function`` and of the functions of ``module`` it calls, transitively."""
+    try:
+        source = inspect.getsource(function)
+    except (OSError, TypeError):
+        return ""
+    parts = [source]
+    for name in _called_names(source) - seen:
+        seen.add(name)
+        target = getattr(module, name, None)
+        if inspect.isfunction(target) and getattr(target, "__module__", None) == module.__name__:
+            parts.append(_reach(target, module, seen))
+    return "\n".join(parts)
+
+
+def _activity(item) -> str:
+    """What ``item`` runs: its function's reach and that of every fixture it uses."""
+    module = item.module
+    parts = [_reach(item.function, module, set())]
+    for name in item.fixturenames:
+        for definition in item._fixtureinfo.name2fixturedefs.get(name, ()):
+            func = getattr(definition, "func", None)
+            home = inspect.getmodule(func)
+            if func is not None and home is not None and home.__name__ in (module.__name__, "conftest"):
+                parts.append(_reach(func, home, set()))
+    return "\n".join(parts)
+
+
+def pytest_collection_modifyitems(config, items) -> None:
+    for item in items:
+        if not isinstance(item, pytest.Function):
+            continue
+        kinds = {"shared_data"} if "shared_data" in item.fixturenames else set()
+        activity = _activity(item)
+        kinds |= {kind for kind, pattern in SPAWNS.items() if pattern.search(activity)}
+        for kind in sorted(kinds):
+            item.add_marker(kind)
+        if kinds:
+            item.add_marker("slow")

@@ -374,6 +374,7 @@ def test_every_public_function_has_the_numpydoc_sections(name):
     assert parameters <= documented, f"{name}: undocumented parameters {sorted(parameters - documented)}"
 
 
+@pytest.mark.slow
 def test_the_examples_in_the_docstrings_run():
     finder = doctest.DocTestFinder()
     runner = doctest.DocTestRunner(optionflags=doctest.ELLIPSIS | doctest.NORMALIZE_WHITESPACE)

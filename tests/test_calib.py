@@ -43,6 +43,7 @@ def _distortion_px(n: np.ndarray, K: np.ndarray, D: np.ndarray) -> np.ndarray:
     return (distorted - ideal).reshape(-1, 2)
 
 
+@pytest.mark.slow
 def test_synthetic_rig_recovers_truth(rig_dir, calibrated):
     path, report = calibrated
     truth = load_calibration(rig_dir / "truth.yml")

@@ -8,6 +8,7 @@ import json
 import re
 
 import numpy as np
+import pytest
 from conftest import REPO, two_scenes
 
 from stereocli.io.images import read_image
@@ -15,6 +16,7 @@ from stereocli.runinfo import RunRecord
 
 # --------------------------------------------------------------------------- calibrate
 
+@pytest.mark.slow
 def test_calibrate_prints_its_report_on_stdout(run_cli, tmp_path):
     from stereocli.synth.rig import render_rig
 

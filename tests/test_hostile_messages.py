@@ -430,6 +430,7 @@ def test_calib_txt_with_ndisp_zero_says_the_range_is_estimated(run_cli, tmp_path
     assert params["range"]["source"] == "estimated" and params["ndisp"] > 0
 
 
+@pytest.mark.slow
 def test_an_unwritable_detection_cache_is_a_warning(run_cli, tmp_path):
     from stereocli.synth.rig import render_rig
 

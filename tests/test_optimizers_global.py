@@ -225,6 +225,7 @@ def test_warp_to_right_keeps_the_nearest():
     np.testing.assert_array_equal(warp_to_right(disp), [[0.0, 1.0, np.inf, 0.0]])
 
 
+@pytest.mark.slow
 def test_match_cli_runs_every_method(tmp_path, base_yaml):
     from stereocli.cli.main import cli
     from stereocli.io.images import write_image

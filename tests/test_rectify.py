@@ -22,6 +22,7 @@ def scene_pair(tmp_path_factory):
     return out, rig
 
 
+@pytest.mark.slow
 def test_rectified_points_share_rows(scene_pair):
     _, rig = scene_pair
     calib = rig.calibration()

@@ -85,6 +85,7 @@ class _Capture:
         self._stack.close()
 
 
+@pytest.mark.slow
 def test_a_known_homography_is_undone_to_a_tenth_of_a_pixel(synthetic_rig):
     scenes, W, root, code, _ = synthetic_rig
     assert code == 3

@@ -65,6 +65,7 @@ def test_resample_rows_reads_each_row_at_its_offset():
     assert np.abs(image[inner] - expected[inner]).max() > 10  # and the rows did move
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("offset", [0.4, -0.7])
 def test_tracking_measures_a_rendered_row_offset(offset):
     scene = render(scene_surfaces("planes", W, H, seed=0), W, H, right_row_offset=offset)
@@ -88,6 +89,7 @@ def without_row_align(tmp_path_factory):
     return build_config([str(path)])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["planes", "curved"])
 def test_default_undoes_a_rendered_row_offset(name, without_row_align):
     surfaces = scene_surfaces(name, W, H, seed=0)
@@ -110,6 +112,7 @@ def test_default_undoes_a_rendered_row_offset(name, without_row_align):
     assert bad_corrected < bad_aligned + 0.3
 
 
+@pytest.mark.slow
 def test_a_shift_of_several_pixels_is_undone(without_row_align):
     scene = render(scene_surfaces("planes", W, H, seed=0), W, H, right_row_offset=5.0)
     corrected = match_pair(scene["left"], scene["right"], build_config(["default"]), ndisp=48)
@@ -119,6 +122,7 @@ def test_a_shift_of_several_pixels_is_undone(without_row_align):
     assert _bad(uncorrected, scene) > 30 and _bad(corrected.disparity, scene) < 3
 
 
+@pytest.mark.slow
 def test_rows_off_in_a_way_no_plane_describes_are_left_alone():
     surfaces = scene_surfaces("curved", W, H, seed=0)
     up, down = render(surfaces, W, H, right_row_offset=-2.0), render(surfaces, W, H, right_row_offset=2.0)
@@ -127,6 +131,7 @@ def test_rows_off_in_a_way_no_plane_describes_are_left_alone():
     assert note["applied"] is False and "max_spread" in note["reason"] and note["spread_px"] > 0.5
 
 
+@pytest.mark.slow
 def test_an_offset_beyond_max_offset_is_left_alone():
     scene = render(scene_surfaces("planes", W, H, seed=0), W, H, right_row_offset=1.5)
     result = match_pair(scene["left"], scene["right"], build_config(["default"], ["preprocess.row_align.max_offset=1.0"]),
@@ -135,6 +140,7 @@ def test_an_offset_beyond_max_offset_is_left_alone():
     assert note["applied"] is False and "max_offset" in note["reason"] and note["largest_px"] > 1.0
 
 
+@pytest.mark.slow
 def test_the_match_record_holds_the_fit(run_cli, tmp_path):
     out = tmp_path / "out"
     assert run_cli("match", two_scenes(tmp_path / "scenes", W, H), "-o", out).code == 0
@@ -161,6 +167,7 @@ def test_middeval3_row_offsets(shared_data, scene, low, high, preset):
     assert note["applied"] is True and low <= note["offset_px"] <= high
 
 
+@pytest.mark.slow
 def test_tracks_do_not_depend_on_the_thread_count():
     import cv2
 
@@ -183,6 +190,7 @@ def test_tracks_do_not_depend_on_the_thread_count():
         np.testing.assert_array_equal(a, b)
 
 
+@pytest.mark.slow
 def test_no_tracks_outside_the_disparity_range():
     scene = render(scene_surfaces("planes", W, H, seed=0), W, H, right_row_offset=0.4)
     inside = track_rows(_grey(scene["left"]), _grey(scene["right"]), disparity_range=(-1, 48), scale=2)
@@ -192,6 +200,7 @@ def test_no_tracks_outside_the_disparity_range():
     assert left.shape == (0, 2) and right.shape == (0, 2)
 
 
+@pytest.mark.slow
 def test_the_right_map_keeps_the_input_right_views_rows():
     """``--right``: the right-referenced map of a pair whose right view is 3 px lower is the
     aligned pair's right map 3 rows lower, not the map of the resampled view."""
@@ -233,6 +242,7 @@ def test_the_default_gains_on_middeval3(shared_data, without_row_align):
     assert with_ <= 18.0 and with_ <= without - 0.9, (with_, without)
 
 
+@pytest.mark.slow
 def test_a_given_plane_is_applied_without_tracking(without_row_align):
     surfaces = scene_surfaces("planes", W, H, seed=0)
     aligned, shifted = render(surfaces, W, H), render(surfaces, W, H, right_row_offset=0.4)
@@ -250,6 +260,7 @@ def test_a_given_plane_is_applied_without_tracking(without_row_align):
                                   match_pair(shifted["left"], shifted["right"], without_row_align, ndisp=48).disparity)
 
 
+@pytest.mark.slow
 def test_views_go_grey_when_no_stage_reads_their_colour(monkeypatch, tmp_path):
     import stereocli.matching.pipeline as pipeline
     from stereocli.matching.kernels.images import luma
@@ -285,6 +296,7 @@ def test_views_go_grey_when_no_stage_reads_their_colour(monkeypatch, tmp_path):
     assert abs(_bad(grey, scene) - _bad(coloured, scene)) < 0.2
 
 
+@pytest.mark.slow
 def test_small_pairs_track_at_half_the_reduction():
     # 320x240 reduced 4x leaves 4800 pixels, under the default's min_pixels (5000): it tracks at
     # 2x (measured: about 300 tracks, offset 0.47 for the rendered 0.4); forced to 4x, the
@@ -302,6 +314,7 @@ def test_small_pairs_track_at_half_the_reduction():
     assert note["reduced"] == 4 and note["applied"] is True and abs(note["offset_px"] - 0.4) < 0.1
 
 
+@pytest.mark.slow
 def test_the_mirrored_pair_is_given_the_pairs_plane(monkeypatch):
     # A pair whose right view sits 0.6 px low, turning across and down the image: mirror_fusion's
     # mirrored run (flipped right view as the left) applies the pair's plane, negated down the
