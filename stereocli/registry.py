@@ -92,6 +92,9 @@ class StageTraits:
     needs_right: bool = False
     #: Fills invalid pixels (``match --keep-invalid`` skips it).
     fills_holes: bool = False
+    #: Sets ``state.confidence`` whenever ``state.wants.confidence`` (``match --confidence``):
+    #: a config makes a confidence map exactly when one of its refinements says so.
+    produces_confidence: bool = False
     #: ``f(state, params)``: the same stage reading ``state.winner`` (the costs kept around each
     #: winner) instead of the volume, with the same result. Lets the volume go unbuilt.
     on_winner_costs: Callable | None = None

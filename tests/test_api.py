@@ -80,6 +80,17 @@ def test_a_calib_txt_gives_the_range():
     assert result.confidence is None and result.disparity_right is None
 
 
+def test_confidence_from_a_pipeline_without_it_fails_before_any_work(monkeypatch):
+    # The config's traits answer (nothing is matched, nor the range estimated).
+    import stereocli.features.survey as survey
+
+    monkeypatch.setattr(survey, "survey_pair", lambda *a, **k: pytest.fail("the pair was surveyed"))
+    left = stereocli.read_image(PLANES / "im0.png")
+    with pytest.raises(ConfigError, match=r"^p: confidence: the configured pipeline produces no confidence map "
+                                          r"\(refinement: subpixel, lr_check, fill, median, plane_smooth\)"):
+        stereocli.match(left, left, preset="fast", confidence=True, name="p")
+
+
 def _sequential_and_concurrent(pairs: list, settings: list[dict]) -> tuple[list, list]:
     sequential = [stereocli.match(*pair, ndisp=48, **kw).disparity for pair, kw in zip(pairs, settings)]
     barrier = threading.Barrier(len(pairs))

@@ -182,13 +182,8 @@ def _load_mask(path: str | None) -> np.ndarray | None:
 
 def check_confidence(config: dict) -> None:
     """Raise :class:`ConfigError` unless the pipeline of ``config`` (a plain dict) produces a
-    confidence map (``match --confidence``), found by matching a tiny pair before any work."""
-    from ..matching.warmup import tiny_match
-
-    validated = _config(config)
-    result = tiny_match(validated, channels=3, dtype=np.dtype(np.uint8), min_disp=0, ndisp=16, masks=False,
-                        want_confidence=True)
-    if result.confidence is None:
+    confidence map (``match --confidence``): a refinement stage whose traits say so."""
+    if not _config(config).produces_confidence():
         names = ", ".join(c["name"] for c in config.get("refinement", [])) or "none"
         raise ConfigError(f"--confidence: the configured pipeline produces no confidence map (refinement: {names}); "
                           "add a refinement stage that does, e.g. --set 'refinement=[..., {name: confidence}]' "

@@ -46,7 +46,8 @@ class LocalConsistencyParams:
                               "(separable: false): a hole has no bin of its own to compare along a line")
 
 
-@register("refinement", "local_consistency", LocalConsistencyParams, traits=StageTraits(map_copies=10))
+@register("refinement", "local_consistency", LocalConsistencyParams,
+          traits=StageTraits(map_copies=10, produces_confidence=True))
 def local_consistency(state: MatchState, p: LocalConsistencyParams) -> None:
     """Locally consistent refinement (Mattoccia 2009): neighbours vote for disparity hypotheses.
 
