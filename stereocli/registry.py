@@ -144,6 +144,10 @@ class StageTraits:
     small_twin: Callable | None = None
     #: ``f(params, width, ndisp) -> bytes``: fixed buffers per row strip (memory planner).
     buffer_bytes: Callable | None = None
+    #: The stage's function takes ``coarse_level=f(state, params, cost) -> disparities``, which
+    #: its coarse-to-fine search calls instead of computing its coarse level (the warm-up
+    #: compiles the fine level's kernels in one process while another compiles the coarse level's).
+    takes_coarse_level: bool = False
 
     # -- memory (the planner: volumes of every stage that holds them, whole-image maps) -------
     #: Extra (H, W, D) float32-sized volumes held beside the input (a uint16 copy counts 0.5);
