@@ -418,7 +418,8 @@ def test_docs_api_is_generated_from_the_docstrings():
 
 PUBLIC_MODULES = ["stereocli", "stereocli.api", "stereocli.calib", "stereocli.evaluation", "stereocli.features",
                   "stereocli.io", "stereocli.matching", "stereocli.rectification", "stereocli.triangulation",
-                  "stereocli.features.survey", "stereocli.matching.kernels", "stereocli.evaluation.api"]
+                  "stereocli.features.survey", "stereocli.matching.kernels", "stereocli.evaluation.api",
+                  "stereocli.evaluation.folders", "stereocli.evaluation.scoring"]
 
 
 @pytest.mark.parametrize("module", PUBLIC_MODULES)
