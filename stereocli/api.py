@@ -370,7 +370,7 @@ def match(
     1.2
     """
     from .features.survey import check_range_meets_image, measures_rows, rows_corrected, rows_from_match, survey_pair
-    from .matching.kernels import threads_for_call
+    from .runtime import threads_for_call
     from .matching.pipeline import match_pair
 
     left, right = _as_image(left, "left", name), _as_image(right, "right", name)

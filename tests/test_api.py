@@ -115,7 +115,7 @@ def _sequential_and_concurrent(pairs: list, settings: list[dict]) -> tuple[list,
 
 
 def test_two_threads_matching_at_once_with_different_settings_give_the_sequential_maps():
-    from stereocli.matching.kernels import get_threads
+    from stereocli.runtime import get_threads
 
     pairs = [(stereocli.read_image(s / "im0.png"), stereocli.read_image(s / "im1.png")) for s in (PLANES, CURVED)]
     settings = [{"threads": 1}, {"threads": 2, "set": {"optimizer.p2": 1.2}}]
@@ -128,22 +128,22 @@ def test_two_threads_matching_at_once_with_different_settings_give_the_sequentia
 
 
 def test_a_thread_count_set_in_one_thread_stays_in_that_thread():
-    from stereocli.matching import kernels
+    from stereocli import runtime
 
     seen = {}
 
     def other() -> None:
-        kernels.set_threads(1)
-        seen["other"] = kernels.kernel_threads()
+        runtime.set_threads(1)
+        seen["other"] = runtime.kernel_threads()
 
-    kernels.set_threads(0)
+    runtime.set_threads(0)
     t = threading.Thread(target=other)
     t.start()
     t.join()
-    assert seen["other"] == 1 and kernels.get_threads() == 0
-    with kernels.threads_for_call(1):
-        assert kernels.kernel_threads() == 1
-    assert kernels.get_threads() == 0
+    assert seen["other"] == 1 and runtime.get_threads() == 0
+    with runtime.threads_for_call(1):
+        assert runtime.kernel_threads() == 1
+    assert runtime.get_threads() == 0
 
 
 def test_the_config_being_matched_is_each_threads_own():
@@ -418,7 +418,7 @@ def test_docs_api_is_generated_from_the_docstrings():
 
 PUBLIC_MODULES = ["stereocli", "stereocli.api", "stereocli.calib", "stereocli.evaluation", "stereocli.features",
                   "stereocli.io", "stereocli.matching", "stereocli.rectification", "stereocli.triangulation",
-                  "stereocli.features.survey", "stereocli.matching.kernels", "stereocli.evaluation.api",
+                  "stereocli.features.survey", "stereocli.runtime", "stereocli.evaluation.api",
                   "stereocli.evaluation.folders", "stereocli.evaluation.scoring"]
 
 

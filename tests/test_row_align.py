@@ -164,7 +164,7 @@ def test_middeval3_row_offsets(shared_data, scene, low, high, preset):
 def test_tracks_do_not_depend_on_the_thread_count():
     import cv2
 
-    from stereocli.matching.kernels import get_threads, set_threads
+    from stereocli.runtime import get_threads, set_threads
 
     scene = render(scene_surfaces("curved", W, H, seed=0), W, H, right_row_offset=0.3)
     runs = []

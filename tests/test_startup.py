@@ -119,7 +119,7 @@ def test_the_compile_notice_says_so_on_stderr_unless_quiet(capsys, monkeypatch):
     from types import SimpleNamespace
 
     from stereocli.cli.main import COMPILE_NOTICE, _compile_notice
-    from stereocli.matching.kernels import aot
+    from stereocli.runtime import aot
 
     monkeypatch.setattr(aot, "missing_build_advice", lambda: "")  # an install with its kernels built
     _compile_notice(SimpleNamespace(obj={"verbosity": 0}))

@@ -20,7 +20,7 @@ from typing import Literal
 import cv2
 import numpy as np
 
-from ..matching.kernels import side_by_side
+from ..runtime import side_by_side
 
 #: Largest descriptor distance ratio best / second best of a kept match.
 RATIO = 0.8

@@ -25,7 +25,7 @@ from typing import Literal
 import cv2
 import numpy as np
 
-from ..matching.kernels import side_by_side
+from ..runtime import side_by_side
 from .points import grey_uint8
 
 #: Largest distance (px) between a track's start and where tracking back from its end lands.

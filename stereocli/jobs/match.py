@@ -194,7 +194,7 @@ def _read_views(item: WorkItem, gray: bool = False) -> tuple[np.ndarray, np.ndar
     """The pair's left and right images, decoded side by side (OpenCV releases the GIL while it
     decodes, so the two decodes overlap). A file's error is raised as reading it alone would."""
     from ..io.images import read_image
-    from ..matching.kernels import side_by_side
+    from ..runtime import side_by_side
 
     return side_by_side(lambda: read_image(item.inputs["left"], gray=gray),
                         lambda: read_image(item.inputs["right"], gray=gray))
@@ -351,7 +351,7 @@ def match_item(item: WorkItem) -> dict:
         details["warnings"] = [*details.get("warnings", []),
                                f"disp0.png: {png16_lost} valid pixels outside [1, 65535] / {opts['png16_scale']:g} px "
                                "written as 0 (invalid); disp0.pfm has them"]
-    from ..matching.kernels.aot import describe
+    from ..runtime.aot import describe
 
     params = {"pair": item.name, "inputs": item.inputs, "config": opts["config"], **details,
               "kernels": describe(), **opts.get("record", {})}

@@ -729,6 +729,6 @@ def current_config() -> PipelineConfig | None:
 
 
 def _set_threads(threads: int) -> None:
-    from .kernels import set_threads
+    from ..runtime import set_threads
 
     set_threads(threads)  # also numba's, for its prange kernels, once numba has started

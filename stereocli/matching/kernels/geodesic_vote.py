@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import chunk_kernel, for_chunks, njit
+from ...runtime import chunk_kernel, for_chunks, njit
 from .local_consistency import _packed_distance
 
 

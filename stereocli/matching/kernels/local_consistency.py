@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import chunk_kernel, for_chunks, for_rows, njit, prange
+from ...runtime import chunk_kernel, for_chunks, for_rows, njit, prange
 
 INF = np.float32(np.inf)
 
