@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from stereocli.features.vertical_offset import VerticalOffset, fit_vertical_offset, resample_rows, track_rows
+from stereocli.matching.vertical_offset import VerticalOffset, fit_vertical_offset, resample_rows, track_rows
 from stereocli.io.images import read_image
 from stereocli.matching.config import build_config
 from stereocli.matching.pipeline import match_pair
@@ -307,7 +307,7 @@ def test_the_mirrored_pair_is_given_the_pairs_plane(monkeypatch):
     # mirrored run (flipped right view as the left) applies the pair's plane, negated down the
     # image and in offset, instead of tracking again. The plane row_align measures on the
     # mirrored pair itself agrees with it.
-    import stereocli.features.vertical_offset as vertical_offset
+    import stereocli.matching.vertical_offset as vertical_offset
     from stereocli.matching import preprocess
     from stereocli.matching.pipeline import prepare
 

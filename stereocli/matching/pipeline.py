@@ -503,7 +503,7 @@ def _right_map_rows(state: MatchState, right_map: np.ndarray, *, to_input: bool)
     map's matches read it). Unchanged when no stage moved the rows."""
     if state.right_rows is None:
         return right_map
-    from ..features.vertical_offset import move_map_rows
+    from .vertical_offset import move_map_rows
 
     return move_map_rows(right_map, state.right_rows.reversed() if to_input else state.right_rows)
 

@@ -55,7 +55,7 @@ import numpy as np
 from .kernels.images import luma
 
 if TYPE_CHECKING:
-    from ..features.vertical_offset import VerticalOffset
+    from .vertical_offset import VerticalOffset
 
 
 @dataclass
@@ -105,7 +105,7 @@ class MatchState:
     row_offset: int = 0  # first image row of this (strip) state
     notes: dict = field(default_factory=dict)  # stage name -> JSON-ready facts for the match record
     # Set by a stage that resampled the right view's rows (``row_align``): the
-    # :class:`~stereocli.features.vertical_offset.VerticalOffset` it moved them by. The pipeline
+    # :class:`~stereocli.matching.vertical_offset.VerticalOffset` it moved them by. The pipeline
     # moves right-referenced maps between ``right``'s rows and the input's with it.
     right_rows: VerticalOffset | None = None
     gray_cache: dict = field(default_factory=dict, repr=False)  # which -> (image, its grey), see gray()
