@@ -111,8 +111,14 @@ def kernel_name(function) -> str | None:
 
 def kernel_sources_hash() -> str:
     """Hash of the Python files of the runtime (how the kernels are compiled) and of every package
-    holding a listed kernel (each kernel and the helpers it inlines)."""
-    folders = {RUNTIME_DIR} | {PACKAGE_DIR.joinpath(*kernel.split(".")[:-2]) for kernel in read_signatures()}
+    holding a listed kernel (each kernel and the helpers it inlines). Without the list (a damaged
+    install), the runtime's alone: no build matches it."""
+    try:
+        listed = {line.split("\t", 1)[0] for line in SIGNATURES_FILE.read_text().splitlines()
+                  if line.strip() and not line.startswith("#")}
+    except OSError:
+        listed = set()
+    folders = {RUNTIME_DIR} | {PACKAGE_DIR.joinpath(*kernel.split(".")[:-2]) for kernel in listed}
     digest = hashlib.sha256()
     for path in sorted(path for folder in folders for path in folder.glob("*.py")):
         digest.update(path.relative_to(PACKAGE_DIR).as_posix().encode() + b"\0" + path.read_bytes())
