@@ -1,5 +1,5 @@
 """Build step of ``pip install``: the numba kernels of the ladder's presets (default, fast, accurate,
-realtime, quality) compiled ahead of time into the package (``stereocli/matching/kernels/aot.py``), so that
+realtime, quality) compiled ahead of time into the package (``stereocli/runtime/aot.py``), so that
 a ``stereocli`` process loads them as extension modules instead of starting numba's JIT, and
 the first run of those presets compiles nothing. The project's metadata is in
 ``pyproject.toml``.
@@ -27,7 +27,8 @@ from setuptools.command.bdist_wheel import bdist_wheel
 from setuptools.command.build_py import build_py
 from setuptools.dist import Distribution
 
-KERNELS = Path("stereocli", "matching", "kernels")
+#: The package folder of the compiled-kernel runtime, whose ``_aot`` folder holds the build.
+RUNTIME = Path("stereocli", "runtime")
 FAILED_NOTE = "BUILD_FAILED.txt"
 
 
@@ -40,19 +41,19 @@ class BuildWithKernels(build_py):
         editable = getattr(self, "editable_mode", False)
         root = Path.cwd() if editable else Path(self.build_lib)
         if not editable:  # never ship what an earlier build left in build/
-            shutil.rmtree(root / KERNELS / "_aot", ignore_errors=True)
+            shutil.rmtree(root / RUNTIME / "_aot", ignore_errors=True)
         if os.environ.get("STEREOCLI_AOT", "1") == "0":
-            _write_failed_note(root / KERNELS / "_aot", "STEREOCLI_AOT=0 at install")
+            _write_failed_note(root / RUNTIME / "_aot", "STEREOCLI_AOT=0 at install")
             return
         sys.path.insert(0, str(root))  # import stereocli from where it is being built
         try:
-            from stereocli.matching.kernels import aot
+            from stereocli.runtime import aot
 
-            self.distribution.kernels_built = _build_or_reuse(aot, root / KERNELS / "_aot")
+            self.distribution.kernels_built = _build_or_reuse(aot, root / RUNTIME / "_aot")
         except Exception as exc:  # noqa: BLE001 - the install goes on; the kernels compile on first use
-            shutil.rmtree(root / KERNELS / "_aot", ignore_errors=True)
+            shutil.rmtree(root / RUNTIME / "_aot", ignore_errors=True)
             reason = f"{type(exc).__name__}: {exc}".splitlines()[0][:300]
-            _write_failed_note(root / KERNELS / "_aot", reason)
+            _write_failed_note(root / RUNTIME / "_aot", reason)
             print(f"stereocli: WARNING: kernels not compiled ahead of time ({reason}); "
                   "stereocli compiles them on first use", flush=True)
         finally:

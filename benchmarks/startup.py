@@ -11,7 +11,7 @@ the PFM (little endian, bottom row first). Cases:
   first use of ``stereocli.match``, over a bare interpreter's start (no data needed).
 
 stereocli runs with its kernels compiled ahead of time (``pip install .``; in a checkout,
-``python -m stereocli.matching.kernels.aot``) and, as a third process, without them
+``python -m stereocli.runtime.aot``) and, as a third process, without them
 (``STEREOCLI_AOT=0``: every kernel from numba's cache).
 
 The processes take turns (A, B, C, A, B, C, ...) for ``--repeat`` rounds with warm numba caches

@@ -370,7 +370,7 @@ def match(
     1.2
     """
     from .features.survey import check_range_meets_image, measures_rows, rows_corrected, rows_from_match, survey_pair
-    from .matching.kernels import threads_for_call
+    from .runtime import threads_for_call
     from .matching.pipeline import match_pair
 
     left, right = _as_image(left, "left", name), _as_image(right, "right", name)
@@ -383,6 +383,10 @@ def match(
     left_valid = _as_mask(left_valid, "left", shape, name)
     right_valid = _as_mask(right_valid, "right", shape, name)
     cfg = match_config(preset, config, set, threads)
+    if confidence and not cfg.produces_confidence():
+        names = ", ".join(c.stage.name for c in cfg.refinement) or "none"
+        raise ConfigError(_named(name, f"confidence: the configured pipeline produces no confidence map (refinement: "
+                                       f"{names}); add a refinement stage that does, e.g. {{name: confidence}}"))
     lo, nd, source = _given_range(ndisp, min_disp, calib, name)
     with threads_for_call(cfg.runtime.threads):
         # With the range known, a config whose row_align measures the rows leaves the alignment
@@ -408,10 +412,6 @@ def match(
         if rows_in_match:
             survey.update(rows_from_match(note, left, right, name=name, left_valid=left_valid,
                                           right_valid=right_valid, require_aligned=require_aligned))
-    if confidence and result.confidence is None:
-        names = ", ".join(c.stage.name for c in cfg.refinement) or "none"
-        raise ConfigError(_named(name, f"confidence: the configured pipeline produces no confidence map (refinement: "
-                                       f"{names}); add a refinement stage that does, e.g. {{name: confidence}}"))
     return MatchResult(
         disparity=result.disparity, range=MatchRange(span["min_disp"], span["ndisp"], span["source"],
                                                      span.get("evidence")),

@@ -46,7 +46,11 @@ DEFAULT_BUDGET_GB = 8.0
 #: bytes kept (how ``match`` hands a budget's setting to its worker processes).
 KEEP_ENV = "STEREOCLI_KEEP_FREED_MEMORY"
 
-_applied: bool | None = None
+class _Allocator:
+    """What :func:`keep_freed_memory` set in this process (one per process; the entry points
+    call it from their main thread)."""
+
+    applied: bool | None = None  # whether the C library took the thresholds; None: not tried yet
 
 
 def kept_bytes(memory_gb: float | None = None) -> int:
@@ -61,12 +65,11 @@ def kept_bytes(memory_gb: float | None = None) -> int:
 def keep_freed_memory() -> bool:
     """Apply the thresholds (once): :data:`KEEP_BYTES`, or the bytes ``STEREOCLI_KEEP_FREED_MEMORY``
     gives; True if the C library accepted them."""
-    global _applied
-    if _applied is not None:
-        return _applied
+    if _Allocator.applied is not None:
+        return _Allocator.applied
     value = os.environ.get(KEEP_ENV, "1")
     if value == "0":
-        _applied = False
+        _Allocator.applied = False
         return False
     return _set_thresholds(int(value) if value.isdigit() and int(value) > 1 else KEEP_BYTES)
 
@@ -78,22 +81,21 @@ def keep_freed_memory_within(memory_gb: float) -> bool:
     keep_freed_memory()
     keep = kept_bytes(memory_gb)
     if KEEP_ENV in os.environ or keep >= KEEP_BYTES:
-        return bool(_applied)
+        return bool(_Allocator.applied)
     os.environ[KEEP_ENV] = str(keep)
     return _set_thresholds(keep)
 
 
 def _set_thresholds(keep: int) -> bool:
-    global _applied
-    _applied = False
+    _Allocator.applied = False
     try:
         libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
         mallopt = libc.mallopt
     except (OSError, AttributeError):
         return False
     mallopt.argtypes = (ctypes.c_int, ctypes.c_int)
-    _applied = bool(mallopt(_M_MMAP_THRESHOLD, keep)) and bool(mallopt(_M_TRIM_THRESHOLD, keep))
-    return _applied
+    _Allocator.applied = bool(mallopt(_M_MMAP_THRESHOLD, keep)) and bool(mallopt(_M_TRIM_THRESHOLD, keep))
+    return _Allocator.applied
 
 
 # --- the compiled kernels' start-up -----------------------------------------------------------
@@ -140,7 +142,10 @@ class _NumbaStart(importlib.abc.MetaPathFinder):
         return None
 
 
-_kernels_prepared = False
+class _KernelsPrepared:
+    """Whether :func:`prepare_kernels` ran in this process (one per process)."""
+
+    done = False
 
 #: Environment of the BLAS libraries (numpy's OpenBLAS, and the one OpenCV bundles), set before
 #: numpy is imported (a value the user set wins). stereocli multiplies no large matrices (its
@@ -166,10 +171,9 @@ def prepare_kernels() -> None:
     :data:`KERNEL_THREAD_ENV`, and the start hook :class:`_NumbaStart`. Also freezes the
     objects left at exit (``gc.freeze`` as the last exit handler), so the interpreter's final
     cycle collections do not walk numba's many compiler objects. Every output is closed by then."""
-    global _kernels_prepared
-    if _kernels_prepared:
+    if _KernelsPrepared.done:
         return
-    _kernels_prepared = True
+    _KernelsPrepared.done = True
     for key, value in KERNEL_THREAD_ENV.items():
         os.environ.setdefault(key, value)
     if "numba.np.arraymath" in sys.modules:

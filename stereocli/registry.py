@@ -92,6 +92,9 @@ class StageTraits:
     needs_right: bool = False
     #: Fills invalid pixels (``match --keep-invalid`` skips it).
     fills_holes: bool = False
+    #: Sets ``state.confidence`` whenever ``state.wants.confidence`` (``match --confidence``):
+    #: a config makes a confidence map exactly when one of its refinements says so.
+    produces_confidence: bool = False
     #: ``f(state, params)``: the same stage reading ``state.winner`` (the costs kept around each
     #: winner) instead of the volume, with the same result. Lets the volume go unbuilt.
     on_winner_costs: Callable | None = None
@@ -141,6 +144,10 @@ class StageTraits:
     small_twin: Callable | None = None
     #: ``f(params, width, ndisp) -> bytes``: fixed buffers per row strip (memory planner).
     buffer_bytes: Callable | None = None
+    #: The stage's function takes ``coarse_level=f(state, params, cost) -> disparities``, which
+    #: its coarse-to-fine search calls instead of computing its coarse level (the warm-up
+    #: compiles the fine level's kernels in one process while another compiles the coarse level's).
+    takes_coarse_level: bool = False
 
     # -- memory (the planner: volumes of every stage that holds them, whole-image maps) -------
     #: Extra (H, W, D) float32-sized volumes held beside the input (a uint16 copy counts 0.5);

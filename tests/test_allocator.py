@@ -19,7 +19,7 @@ def _run(code: str, env_value: str | None = None) -> str:
 
 
 def test_importing_the_library_changes_no_process_setting():
-    code = "import stereocli.matching.pipeline, stereocli.jobs, stereocli.process as p; print(p._applied)"
+    code = "import stereocli.matching.pipeline, stereocli.jobs, stereocli.process as p; print(p._Allocator.applied)"
     assert _run(code) == "None"
 
 
@@ -32,7 +32,7 @@ def test_applied_by_the_call_with_glibc_and_disabled_by_the_environment():
 
 def test_the_command_line_applies_it():
     code = ("import stereocli.process as p; from click.testing import CliRunner; from stereocli.cli.main import cli; "
-            "CliRunner().invoke(cli, ['stages', 'census']); print(p._applied)")
+            "CliRunner().invoke(cli, ['stages', 'census']); print(p._Allocator.applied)")
     assert _run(code) == ("True" if GLIBC else "False")
 
 

@@ -1,4 +1,4 @@
-"""Kernels compiled ahead of time (stereocli/matching/kernels/aot.py) and numba started lazily: the
+"""Kernels compiled ahead of time (stereocli/runtime/aot.py) and numba started lazily: the
 same maps bit for bit, the list of compiled signatures covers a default run, a stale or foreign
 build is never used, and a default run with them does not import numba."""
 
@@ -15,13 +15,13 @@ import pytest
 from conftest import REPO
 
 from stereocli.matching.config import build_config
-from stereocli.matching.kernels import aot
+from stereocli.runtime import aot
 from stereocli.matching.pipeline import match_pair
 from stereocli.matching.warmup import synthetic_pair
 
 _FIND = aot.find  # the real lookup (the tests wrap it)
 #: Two kernels built in the test (about 5 s): one that allocates, one that does not.
-SOME_KERNELS = ["maps._fill_background_rows", "maps._lr_check_onto_rows"]
+SOME_KERNELS = ["matching.kernels.maps._fill_background_rows", "matching.kernels.maps._lr_check_onto_rows"]
 
 
 def _pairs() -> list[tuple[np.ndarray, np.ndarray, dict]]:
@@ -48,8 +48,7 @@ def _maps(monkeypatch, folder: Path | None) -> tuple[list[np.ndarray], dict]:
     else:
         monkeypatch.setenv("STEREOCLI_AOT", "1")
         monkeypatch.setenv("STEREOCLI_AOT_DIR", str(folder))
-    monkeypatch.setattr(aot, "_table", [None])
-    monkeypatch.setattr(aot, "_why_not", [""])
+    monkeypatch.setattr(aot, "_BUILD", aot._UsedBuild())
     used: dict = {}
 
     def counted(kernel, args):
@@ -114,8 +113,7 @@ def test_the_listed_signatures_are_those_of_the_built_presets(monkeypatch):
     seen: set = set()
 
     def recorded(kernel, args):
-        module = kernel.py_func.__module__.rsplit(".", 1)[1]
-        seen.add((f"{module}.{kernel.py_func.__name__}", tuple(aot.type_name(a) for a in args)))
+        seen.add((aot.kernel_name(kernel.py_func), tuple(aot.type_name(a) for a in args)))
         return _FIND(kernel, args)
 
     monkeypatch.setattr(aot, "find", recorded)
@@ -130,7 +128,7 @@ def test_kernels_built_ahead_of_time_give_the_same_maps_as_the_jit(monkeypatch, 
     jit_maps, jit_used = _maps(monkeypatch, None)
     aot_maps, aot_used = _maps(monkeypatch, built)
     assert jit_used == {}
-    assert set(aot_used) == {kernel.split(".")[1] for kernel in SOME_KERNELS}
+    assert set(aot_used) == {kernel.rsplit(".", 1)[1] for kernel in SOME_KERNELS}
     for jit_map, aot_map in zip(jit_maps, aot_maps):
         np.testing.assert_array_equal(aot_map, jit_map)
 
@@ -168,8 +166,7 @@ def test_a_build_for_other_sources_another_cpu_damaged_or_none_is_not_used(monke
             assert aot._usable_build()[0] == {}, damage
             continue
         table = aot._usable_build()[0]
-        monkeypatch.setattr(aot, "_table", [table])
-        monkeypatch.setattr(aot, "_not_loaded", [])
+        monkeypatch.setattr(aot, "_BUILD", aot._UsedBuild(table=table))
         broken = [kernel for kernel in table.values() if kernel.path.name == modules[0].name]
         assert len(broken) == 1 and broken[0].load() == {}
         assert all(kernel.load() for kernel in table.values() if kernel not in broken)
@@ -185,13 +182,11 @@ def test_the_record_says_whether_the_build_is_used_and_why_not(monkeypatch, buil
     for flag, expected in (("1", "2 compiled at install; others from numba's JIT"),
                            ("0", "none compiled at install (STEREOCLI_AOT=0): numba's JIT")):
         monkeypatch.setenv("STEREOCLI_AOT", flag)
-        monkeypatch.setattr(aot, "_table", [None])
-        monkeypatch.setattr(aot, "_why_not", [""])
+        monkeypatch.setattr(aot, "_BUILD", aot._UsedBuild())
         assert aot.describe() == expected
     monkeypatch.setenv("STEREOCLI_AOT", "1")
     monkeypatch.setenv("STEREOCLI_AOT_DIR", str(tmp_path))
-    monkeypatch.setattr(aot, "_table", [None])
-    monkeypatch.setattr(aot, "_why_not", [""])
+    monkeypatch.setattr(aot, "_BUILD", aot._UsedBuild())
     assert aot.describe() == f"none compiled at install (no build in {tmp_path}): numba's JIT"
 
 
@@ -201,7 +196,7 @@ def _complete_build() -> Path | None:
     None if neither."""
     import sysconfig
 
-    installed = {Path(sysconfig.get_paths()[key]) / "stereocli" / "matching" / "kernels" / "_aot"
+    installed = {Path(sysconfig.get_paths()[key]) / "stereocli" / "runtime" / "_aot"
                  for key in ("platlib", "purelib")}
     for folder in [*sorted(installed), aot.BUILD_DIR]:
         manifest = aot.read_manifest(folder)
@@ -218,7 +213,7 @@ def test_the_installed_build_gives_the_same_maps_with_every_kernel(monkeypatch):
         pytest.skip("no ahead-of-time build of these sources is installed")
     jit_maps, _ = _maps(monkeypatch, None)
     aot_maps, aot_used = _maps(monkeypatch, folder)
-    assert set(aot_used) == {kernel.split(".")[1] for kernel in aot.read_signatures()}
+    assert set(aot_used) == {kernel.rsplit(".", 1)[1] for kernel in aot.read_signatures()}
     for jit_map, aot_map in zip(jit_maps, aot_maps):
         np.testing.assert_array_equal(aot_map, jit_map)
 
@@ -259,7 +254,7 @@ def test_runs_of_the_built_presets_never_import_numba(tmp_path):
 def test_numba_starts_on_first_use_and_kernels_imported_later_get_its_prange():
     code = ("import sys\nimport stereocli.matching.kernels.sgm as sgm\n"
             "print('numba' in sys.modules)\n"
-            "from stereocli.matching.kernels.compiling import start_numba\nstart_numba()\n"
+            "from stereocli.runtime.compiling import start_numba\nstart_numba()\n"
             "import numba\nimport stereocli.matching.kernels.costs as costs\n"
             "print(costs.prange is numba.prange, type(sgm._penalty2).__name__)")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
@@ -270,14 +265,12 @@ def test_an_install_that_did_not_build_says_why_and_how_to_fix_it(monkeypatch, t
     (tmp_path / aot.FAILED_NOTE).write_text("CompileError: no C compiler\n")  # what setup.py leaves
     monkeypatch.setenv("STEREOCLI_AOT", "1")
     monkeypatch.setenv("STEREOCLI_AOT_DIR", str(tmp_path))
-    monkeypatch.setattr(aot, "_table", [None])
-    monkeypatch.setattr(aot, "_why_not", [""])
+    monkeypatch.setattr(aot, "_BUILD", aot._UsedBuild())
     assert aot.describe() == "none compiled at install (not built at install: CompileError: no C compiler): numba's JIT"
     advice = aot.missing_build_advice()
     assert "CompileError: no C compiler" in advice and "to build them: " in advice
     monkeypatch.setenv("STEREOCLI_AOT", "0")  # turned off on purpose: nothing to advise
-    monkeypatch.setattr(aot, "_table", [None])
-    monkeypatch.setattr(aot, "_why_not", [""])
+    monkeypatch.setattr(aot, "_BUILD", aot._UsedBuild())
     assert aot.missing_build_advice() == ""
 
 
@@ -292,5 +285,5 @@ def test_a_wheel_without_compiled_kernels_is_pure_python(tmp_path):
     import zipfile
 
     names = zipfile.ZipFile(wheel).namelist()
-    assert "stereocli/matching/kernels/_aot/BUILD_FAILED.txt" in names
+    assert "stereocli/runtime/_aot/BUILD_FAILED.txt" in names
     assert not [n for n in names if n.endswith((".so", ".pyd"))]

@@ -80,6 +80,17 @@ def test_a_calib_txt_gives_the_range():
     assert result.confidence is None and result.disparity_right is None
 
 
+def test_confidence_from_a_pipeline_without_it_fails_before_any_work(monkeypatch):
+    # The config's traits answer (nothing is matched, nor the range estimated).
+    import stereocli.features.survey as survey
+
+    monkeypatch.setattr(survey, "survey_pair", lambda *a, **k: pytest.fail("the pair was surveyed"))
+    left = stereocli.read_image(PLANES / "im0.png")
+    with pytest.raises(ConfigError, match=r"^p: confidence: the configured pipeline produces no confidence map "
+                                          r"\(refinement: subpixel, lr_check, fill, median, plane_smooth\)"):
+        stereocli.match(left, left, preset="fast", confidence=True, name="p")
+
+
 def _sequential_and_concurrent(pairs: list, settings: list[dict]) -> tuple[list, list]:
     sequential = [stereocli.match(*pair, ndisp=48, **kw).disparity for pair, kw in zip(pairs, settings)]
     barrier = threading.Barrier(len(pairs))
@@ -104,7 +115,7 @@ def _sequential_and_concurrent(pairs: list, settings: list[dict]) -> tuple[list,
 
 
 def test_two_threads_matching_at_once_with_different_settings_give_the_sequential_maps():
-    from stereocli.matching.kernels import get_threads
+    from stereocli.runtime import get_threads
 
     pairs = [(stereocli.read_image(s / "im0.png"), stereocli.read_image(s / "im1.png")) for s in (PLANES, CURVED)]
     settings = [{"threads": 1}, {"threads": 2, "set": {"optimizer.p2": 1.2}}]
@@ -117,22 +128,22 @@ def test_two_threads_matching_at_once_with_different_settings_give_the_sequentia
 
 
 def test_a_thread_count_set_in_one_thread_stays_in_that_thread():
-    from stereocli.matching import kernels
+    from stereocli import runtime
 
     seen = {}
 
     def other() -> None:
-        kernels.set_threads(1)
-        seen["other"] = kernels.kernel_threads()
+        runtime.set_threads(1)
+        seen["other"] = runtime.kernel_threads()
 
-    kernels.set_threads(0)
+    runtime.set_threads(0)
     t = threading.Thread(target=other)
     t.start()
     t.join()
-    assert seen["other"] == 1 and kernels.get_threads() == 0
-    with kernels.threads_for_call(1):
-        assert kernels.kernel_threads() == 1
-    assert kernels.get_threads() == 0
+    assert seen["other"] == 1 and runtime.get_threads() == 0
+    with runtime.threads_for_call(1):
+        assert runtime.kernel_threads() == 1
+    assert runtime.get_threads() == 0
 
 
 def test_the_config_being_matched_is_each_threads_own():
@@ -408,7 +419,8 @@ def test_docs_api_is_generated_from_the_docstrings():
 
 PUBLIC_MODULES = ["stereocli", "stereocli.api", "stereocli.calib", "stereocli.evaluation", "stereocli.features",
                   "stereocli.io", "stereocli.matching", "stereocli.rectification", "stereocli.triangulation",
-                  "stereocli.features.survey", "stereocli.matching.kernels", "stereocli.evaluation.api"]
+                  "stereocli.features.survey", "stereocli.runtime", "stereocli.evaluation.api",
+                  "stereocli.evaluation.folders", "stereocli.evaluation.scoring"]
 
 
 @pytest.mark.parametrize("module", PUBLIC_MODULES)

@@ -31,7 +31,7 @@ def test_version_and_show_versions(run_cli):
     assert r.code == 0 and __version__ in r.out
     r = run_cli("--show-versions")
     assert r.code == 0 and "numpy:" in r.out and "numba:" in r.out and "opencv-python-headless:" in r.out
-    from stereocli.matching.kernels import aot
+    from stereocli.runtime import aot
 
     assert f"kernels: {aot.describe()}\n" in r.out  # the line tells the truth about this process's build
 

@@ -122,3 +122,23 @@ def test_duplicate_registration_is_an_error():
             registry.register("aggregation", "dup_test", P)(first)
     finally:
         registry._unregister("aggregation", "dup_test")
+
+
+@pytest.mark.parametrize("config, produces", [
+    (["fast"], False),
+    (["default"], True),  # its confidence stage
+    ([{"refinement": [{"name": "local_consistency", "radius": 4}]}], True),
+    ([{"refinement": [{"name": "median", "size": 3}]}], False),
+])
+def test_the_confidence_trait_says_what_a_match_makes(config, produces):
+    # match --confidence asks the config (its stages' traits) before any work; a match of a tiny
+    # pair that wants the map shows the traits tell the truth.
+    import numpy as np
+
+    from stereocli.matching.warmup import tiny_match
+
+    cfg = build_config(config)
+    assert cfg.produces_confidence() is produces
+    result = tiny_match(cfg, channels=3, dtype=np.dtype(np.uint8), min_disp=0, ndisp=16, masks=False,
+                        want_confidence=True)
+    assert (result.confidence is not None) is produces

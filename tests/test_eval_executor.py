@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from stereocli.evaluation import api
+from stereocli.evaluation import api, folders
 from stereocli.jobs import evaluate as jobs_evaluate
 from stereocli.io.pfm import read_pfm, write_pfm
 
@@ -123,7 +123,7 @@ def test_retries_rerun_crashed_scenes_only(tmp_path, gt_root, monkeypatch):
     res = write_results(tmp_path / "res", gt_root, bad=("Playroom",))
     reference = api.evaluate(res, gt_root).as_dict()
     calls: dict[str, int] = {}
-    real = api.evaluate_pair
+    real = folders.evaluate_pair
 
     def flaky(estimate, scene, **kwargs):
         name = kwargs["name"]
@@ -132,7 +132,7 @@ def test_retries_rerun_crashed_scenes_only(tmp_path, gt_root, monkeypatch):
             raise RuntimeError("transient crash")
         return real(estimate, scene, **kwargs)
 
-    monkeypatch.setattr(api, "evaluate_pair", flaky)
+    monkeypatch.setattr(folders, "evaluate_pair", flaky)
     report = jobs_evaluate.evaluate(res, gt_root, retries=2, progress=False)
     assert report.as_dict() == reference and report.exit_code == 3
     # curved crashed once and was re-run; Playroom's bad data is a result, not a crash: run once.

@@ -289,7 +289,7 @@ def _other_stereocli(root: Path, change: str) -> Path:
         init = root / "stereocli" / "__init__.py"
         init.write_text(re.sub(r'__version__ = "[^"]*"', '__version__ = "0.0.0+other"', init.read_text()))
     else:
-        changed = {"kernels": "match/kernels/census.py", "sources": "match/pipeline.py"}[change]
+        changed = {"kernels": "matching/kernels/census.py", "sources": "matching/pipeline.py"}[change]
         with open(root / "stereocli" / changed, "a") as source:
             source.write("\n# changed\n")
     return root
@@ -299,7 +299,7 @@ def _other_stereocli(root: Path, change: str) -> Path:
 @pytest.mark.parametrize("change", ["version", "kernels", "sources"])
 def test_a_worker_with_another_stereocli_is_refused(run_cli, tmp_path, scenes, scheduler, start_worker, change):
     from stereocli import __version__
-    from stereocli.matching.kernels.aot import kernel_sources_hash
+    from stereocli.runtime.aot import kernel_sources_hash
 
     other = _other_stereocli(tmp_path / "other", change)
     address = start_worker("other", tmp_path, (other, TESTS))["other"]

@@ -7,12 +7,12 @@ import threading
 import numpy as np
 import pytest
 
-from stereocli.matching import kernels
+from stereocli import runtime
 
 
 @pytest.fixture(params=[1, 2, 3])
 def threads(request, monkeypatch):
-    monkeypatch.setattr(kernels, "kernel_threads", lambda: request.param)
+    monkeypatch.setattr(runtime, "kernel_threads", lambda: request.param)
     return request.param
 
 
@@ -24,13 +24,13 @@ def test_every_row_range_runs_once_and_covers_the_rows(threads):
         with lock:
             out[y0:y1] += 1
 
-    kernels.for_rows(rows, 103, seen)
+    runtime.for_rows(rows, 103, seen)
     np.testing.assert_array_equal(seen, 1)
 
 
 def test_every_chunk_runs_once(threads):
     calls = []
-    kernels.for_chunks(lambda tag, chunk: calls.append((tag, chunk)), 7, "x")
+    runtime.for_chunks(lambda tag, chunk: calls.append((tag, chunk)), 7, "x")
     assert sorted(calls) == [("x", c) for c in range(7)]
 
 
@@ -40,14 +40,14 @@ def test_an_error_in_any_chunk_reaches_the_caller(threads):
             raise ValueError("chunk 5")
 
     with pytest.raises(ValueError, match="chunk 5"):
-        kernels.for_chunks(chunk, 8)
-    kernels.for_chunks(lambda c: None, 8)  # the pool still works afterwards
+        runtime.for_chunks(chunk, 8)
+    runtime.for_chunks(lambda c: None, 8)  # the pool still works afterwards
 
 
 def test_calls_with_fewer_chunks_than_threads_keep_the_pool(monkeypatch):
-    monkeypatch.setattr(kernels, "kernel_threads", lambda: 3)
-    kernels.for_rows(lambda y0, y1: None, 50)
-    pool = kernels._pool[0]
-    kernels.for_chunks(lambda c: None, 2)  # two stripes on three threads
-    kernels.for_rows(lambda y0, y1: None, 50)
-    assert kernels._pool[0] is pool
+    monkeypatch.setattr(runtime, "kernel_threads", lambda: 3)
+    runtime.for_rows(lambda y0, y1: None, 50)
+    pool = runtime._HELPERS.executor
+    runtime.for_chunks(lambda c: None, 2)  # two stripes on three threads
+    runtime.for_rows(lambda y0, y1: None, 50)
+    assert runtime._HELPERS.executor is pool

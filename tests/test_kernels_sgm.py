@@ -139,18 +139,18 @@ def on_one_and_two_threads(run):
     ``prange`` kernels and the chunk kernels' pool alike; the thread counts are restored afterwards."""
     import numba
 
-    from stereocli.matching import kernels
+    from stereocli import runtime
 
-    old, old_chunks = numba.get_num_threads(), kernels.get_threads()
+    old, old_chunks = numba.get_num_threads(), runtime.get_threads()
     results = []
     try:
         for threads in (1, min(2, numba.config.NUMBA_NUM_THREADS)):
             numba.set_num_threads(threads)
-            kernels.set_threads(threads)
+            runtime.set_threads(threads)
             results.append(run())
     finally:
         numba.set_num_threads(old)
-        kernels.set_threads(old_chunks)
+        runtime.set_threads(old_chunks)
     return results
 
 

@@ -72,7 +72,7 @@ def test_fit_recovers_plane_despite_outliers_and_holes(method):
 
 
 def test_pixels_by_segment_is_a_stable_sort_of_the_labels():
-    from stereocli.matching.kernels.segment import pixels_by_segment
+    from stereocli.matching.kernels.segment_planes import pixels_by_segment
 
     rng = np.random.default_rng(4)
     labels = rng.integers(0, 9, (23, 31)).astype(np.int32)
@@ -129,7 +129,7 @@ def _label_regions_reference(img: np.ndarray, tolerance: float, min_size: int) -
 
 @pytest.mark.parametrize("tolerance, min_size", [(0.0, 1), (1.0, 1), (1.0, 4), (2.0, 10)])
 def test_label_regions_matches_its_definition(tolerance, min_size):
-    from stereocli.matching.kernels.segment import label_regions
+    from stereocli.matching.kernels.segment_planes import label_regions
 
     rng = np.random.default_rng(int(tolerance * 10) + min_size)
     # Blocky colours (large components) plus noise of 0-2 levels (links that hold or break).
@@ -247,13 +247,13 @@ def _two_surface_problem(rng, h: int, w: int, split: int):
 def test_local_consistency_kernel_matches_reference_on_random_maps():
     # 8-bit-valued colour images (the kernel's colour tables are exact there), noisy disparities
     # with holes and two surfaces.
-    from stereocli.matching.kernels import segment as ks
+    from stereocli.matching.kernels import local_consistency as klc
 
     rng = np.random.default_rng(11)
     h, w = 16, 21
     left, right, disp = _two_surface_problem(rng, h, w, 10)
     disp[rng.random((h, w)) < 0.1] = np.inf
-    got, _ = ks.local_consistency(disp, left, right, 0, 12, 3, 3.0, 12.0, 12.0, False, np.ones(disp.shape, bool))
+    got, _ = klc.local_consistency(disp, left, right, 0, 12, 3, 3.0, 12.0, 12.0, False, np.ones(disp.shape, bool))
     want = local_consistency_reference(disp, left, right, 0, 12, 3, 3.0, 12.0, 12.0)
     np.testing.assert_array_equal(np.isfinite(got), np.isfinite(want))
     np.testing.assert_allclose(got[np.isfinite(got)], want[np.isfinite(want)], rtol=0, atol=1e-4)

@@ -218,7 +218,7 @@ def _sift_dy(left: np.ndarray, right: np.ndarray, *, consistent: bool = True) ->
     absorbs whatever geometry the pair has, so a pair that is not row-aligned keeps its large
     |dy|; only matches that fit no geometry go. (Without it, p90 measures the mismatch rate:
     1.71 px on PlaytableP as Middlebury rectified it.)"""
-    from stereocli.features.points import grey_uint8
+    from stereocli.io.images import grey_uint8
 
     sift = cv2.SIFT_create()
     (ka, da), (kb, db) = (sift.detectAndCompute(grey_uint8(im), None) for im in (left, right))

@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from stereocli.features.vertical_offset import VerticalOffset, fit_vertical_offset, resample_rows, track_rows
+from stereocli.matching.vertical_offset import VerticalOffset, fit_vertical_offset, resample_rows, track_rows
 from stereocli.io.images import read_image
 from stereocli.matching.config import build_config
 from stereocli.matching.pipeline import match_pair
@@ -171,7 +171,7 @@ def test_middeval3_row_offsets(shared_data, scene, low, high, preset):
 def test_tracks_do_not_depend_on_the_thread_count():
     import cv2
 
-    from stereocli.matching.kernels import get_threads, set_threads
+    from stereocli.runtime import get_threads, set_threads
 
     scene = render(scene_surfaces("curved", W, H, seed=0), W, H, right_row_offset=0.3)
     runs = []
@@ -320,7 +320,7 @@ def test_the_mirrored_pair_is_given_the_pairs_plane(monkeypatch):
     # mirrored run (flipped right view as the left) applies the pair's plane, negated down the
     # image and in offset, instead of tracking again. The plane row_align measures on the
     # mirrored pair itself agrees with it.
-    import stereocli.features.vertical_offset as vertical_offset
+    import stereocli.matching.vertical_offset as vertical_offset
     from stereocli.matching import preprocess
     from stereocli.matching.pipeline import prepare
 

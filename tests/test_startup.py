@@ -119,7 +119,7 @@ def test_the_compile_notice_says_so_on_stderr_unless_quiet(capsys, monkeypatch):
     from types import SimpleNamespace
 
     from stereocli.cli.main import COMPILE_NOTICE, _compile_notice
-    from stereocli.matching.kernels import aot
+    from stereocli.runtime import aot
 
     monkeypatch.setattr(aot, "missing_build_advice", lambda: "")  # an install with its kernels built
     _compile_notice(SimpleNamespace(obj={"verbosity": 0}))
@@ -175,17 +175,18 @@ def test_given_coarse_disparities_replace_the_coarse_level(monkeypatch):
     left, right = warmup.synthetic_pair(160, 96, 32)
     prepared = prepare(left, right, config, ndisp=32)
     computed = run_strip(strip_input(prepared, 0, 96), config, 0, 96)
-    sub = strip_input(prepared, 0, 96)
-    coarse = osgm.coarse_disparity(sub, config.optimizer.params, config.cost)
-    sub = strip_input(prepared, 0, 96)
-    sub.extras[osgm.GIVEN_COARSE] = coarse
-    calls = []
+    coarse = osgm.coarse_disparity(strip_input(prepared, 0, 96), config.optimizer.params, config.cost)
+    calls, given_calls = [], []
     real = osgm.coarse_disparity
     monkeypatch.setattr(osgm, "coarse_disparity", lambda *a: calls.append(1) or real(*a))
-    given = run_strip(sub, config, 0, 96)
-    assert calls == [] and osgm.GIVEN_COARSE not in given.extras
+    given_config = warmup.with_coarse_level(config, lambda *a: given_calls.append(1) or coarse)
+    given = run_strip(strip_input(prepared, 0, 96), given_config, 0, 96)
+    assert calls == [] and given_calls == [1]
     assert np.array_equal(given.disparity, computed.disparity)
     assert np.isfinite(computed.disparity).mean() > 0.5
+    # An optimizer without the trait keeps its config as it is.
+    dp = build_config([], ["optimizer.name=dp"])
+    assert warmup.with_coarse_level(dp, lambda *a: coarse) is dp
 
 
 def test_synthetic_pair_shows_a_box_in_front_of_a_plane():

@@ -51,7 +51,7 @@ class LazyGroup(click.Group):
 def _show_versions(ctx: click.Context, _param: click.Parameter, value: bool) -> None:
     if not value or ctx.resilient_parsing:
         return
-    from ..matching.kernels.aot import describe
+    from ..runtime.aot import describe
     from ..runinfo import versions
 
     for name, version in versions().items():
@@ -105,7 +105,7 @@ def _on_first_compile(ctx: click.Context):
 def _compile_notice(ctx: click.Context) -> None:
     """The first kernel of this run has to compile: say so (unless -q)."""
     if ctx.obj.get("verbosity", 0) >= 0:  # -q: errors only
-        from ..matching.kernels.aot import missing_build_advice
+        from ..runtime.aot import missing_build_advice
 
         advice = missing_build_advice()  # an install that lost its compiled kernels says so here
         click.echo(f"stereocli: {advice}" if advice else COMPILE_NOTICE, err=True)

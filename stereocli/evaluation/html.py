@@ -12,7 +12,7 @@ import numpy as np
 
 from ..errors import check_outputs_free
 from ..io.atomic import write_text
-from .api import EvalReport
+from .scoring import EvalReport
 from .maps import scene_images
 from .report import format_table, region_table
 

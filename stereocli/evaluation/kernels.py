@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 
-from ..matching.kernels import njit, prange
+from ..runtime import njit, prange
 
 
 @njit(cache=True, parallel=True)

@@ -15,7 +15,7 @@ import textwrap
 import unicodedata
 from typing import Any
 
-from .api import EvalReport, SceneResult, json_ready
+from .scoring import EvalReport, SceneResult, json_ready
 from .metrics import quantile_key, threshold_key
 
 FORMATS = ("text", "json", "csv", "markdown")
@@ -169,7 +169,7 @@ def format_markdown(report: EvalReport) -> str:
 
 def format_table(report: EvalReport | SceneResult, fmt: str = "text") -> str:
     """Render ``report`` as ``text``, ``json``, ``csv`` or ``markdown``; a single scene's
-    result (:func:`~stereocli.evaluation.api.evaluate_pair`) renders as its pair report."""
+    result (:func:`~stereocli.evaluation.scoring.evaluate_pair`) renders as its pair report."""
     if isinstance(report, SceneResult):
         report = report.as_report()
     if fmt == "text":

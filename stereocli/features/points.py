@@ -20,7 +20,8 @@ from typing import Literal
 import cv2
 import numpy as np
 
-from ..matching.kernels import side_by_side
+from ..io.images import grey_uint8
+from ..runtime import side_by_side
 
 #: Largest descriptor distance ratio best / second best of a kept match.
 RATIO = 0.8
@@ -49,19 +50,6 @@ class PointMatches:
 
     def __len__(self) -> int:
         return len(self.left)
-
-
-def grey_uint8(image: np.ndarray) -> np.ndarray:
-    """(H, W) uint8 grey of an (H, W) or (H, W, 3) RGB image (uint8, uint16 or float in [0, 255])."""
-    img = np.asarray(image)
-    if img.ndim == 3 and img.dtype == np.uint8:
-        # The same weights in OpenCV's fixed point, on the 8-bit values (no float copy).
-        return cv2.cvtColor(np.ascontiguousarray(img[..., :3]), cv2.COLOR_RGB2GRAY)
-    if img.ndim == 3:
-        img = img[..., :3].astype(np.float32) @ np.float32([0.299, 0.587, 0.114])
-    if img.dtype == np.uint16:
-        img = img / 257.0
-    return np.ascontiguousarray(np.clip(np.rint(img), 0, 255).astype(np.uint8))
 
 
 def _mask(valid: np.ndarray | None) -> np.ndarray | None:

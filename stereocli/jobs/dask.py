@@ -233,7 +233,7 @@ def _identity_probe() -> Callable[[], dict[str, str]]:
         except Exception:  # noqa: BLE001 - a worker without a usable stereocli
             version = sources = "unknown"
         try:
-            from stereocli.matching.kernels.aot import kernel_sources_hash
+            from stereocli.runtime.aot import kernel_sources_hash
 
             kernels = kernel_sources_hash()
         except Exception:  # noqa: BLE001

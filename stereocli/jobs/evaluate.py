@@ -1,8 +1,8 @@
 """``stereocli eval`` as batch work: a results folder's scenes scored on any executor.
 
 Only paths travel to the workers (:func:`eval_item`); each returns its scene's outcome
-(:func:`stereocli.evaluation.api.score_scene`), and the report is assembled in GT-scene order
-(:func:`stereocli.evaluation.api.folder_report`), so it is the same whichever executor ran the
+(:func:`stereocli.evaluation.folders.score_scene`), and the report is assembled in GT-scene order
+(:func:`stereocli.evaluation.folders.folder_report`), so it is the same whichever executor ran the
 scenes.
 """
 
@@ -13,7 +13,8 @@ from typing import Any, Sequence
 
 from ..api import evaluate as evaluate_inputs
 from ..errors import Interrupted
-from ..evaluation.api import EvalOptions, EvalReport, SceneScorer, SceneTask, score_scene
+from ..evaluation.folders import SceneScorer, SceneTask, score_scene
+from ..evaluation.scoring import EvalOptions, EvalReport
 from .executors import run_batch
 from .items import WorkItem
 
@@ -30,7 +31,7 @@ def plan_items(tasks: Sequence[SceneTask], options: EvalOptions) -> list[WorkIte
 
 
 def eval_item(item: WorkItem) -> dict[str, Any]:
-    """Score one scene; returns its :func:`~stereocli.evaluation.api.score_scene` outcome."""
+    """Score one scene; returns its :func:`~stereocli.evaluation.folders.score_scene` outcome."""
     task = SceneTask(item.name, item.options["kind"], item.inputs["gt"], item.inputs["result"],
                      item.inputs.get("time"))
     return score_scene(task, item.options["eval_options"])

@@ -182,13 +182,8 @@ def _load_mask(path: str | None) -> np.ndarray | None:
 
 def check_confidence(config: dict) -> None:
     """Raise :class:`ConfigError` unless the pipeline of ``config`` (a plain dict) produces a
-    confidence map (``match --confidence``), found by matching a tiny pair before any work."""
-    from ..matching.warmup import tiny_match
-
-    validated = _config(config)
-    result = tiny_match(validated, channels=3, dtype=np.dtype(np.uint8), min_disp=0, ndisp=16, masks=False,
-                        want_confidence=True)
-    if result.confidence is None:
+    confidence map (``match --confidence``): a refinement stage whose traits say so."""
+    if not _config(config).produces_confidence():
         names = ", ".join(c["name"] for c in config.get("refinement", [])) or "none"
         raise ConfigError(f"--confidence: the configured pipeline produces no confidence map (refinement: {names}); "
                           "add a refinement stage that does, e.g. --set 'refinement=[..., {name: confidence}]' "
@@ -199,7 +194,7 @@ def _read_views(item: WorkItem, gray: bool = False) -> tuple[np.ndarray, np.ndar
     """The pair's left and right images, decoded side by side (OpenCV releases the GIL while it
     decodes, so the two decodes overlap). A file's error is raised as reading it alone would."""
     from ..io.images import read_image
-    from ..matching.kernels import side_by_side
+    from ..runtime import side_by_side
 
     return side_by_side(lambda: read_image(item.inputs["left"], gray=gray),
                         lambda: read_image(item.inputs["right"], gray=gray))
@@ -356,7 +351,7 @@ def match_item(item: WorkItem) -> dict:
         details["warnings"] = [*details.get("warnings", []),
                                f"disp0.png: {png16_lost} valid pixels outside [1, 65535] / {opts['png16_scale']:g} px "
                                "written as 0 (invalid); disp0.pfm has them"]
-    from ..matching.kernels.aot import describe
+    from ..runtime.aot import describe
 
     params = {"pair": item.name, "inputs": item.inputs, "config": opts["config"], **details,
               "kernels": describe(), **opts.get("record", {})}

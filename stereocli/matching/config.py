@@ -70,6 +70,11 @@ class PipelineConfig:
     def to_yaml(self) -> str:
         return yaml.safe_dump(self.as_dict(), sort_keys=False, default_flow_style=None)
 
+    def produces_confidence(self) -> bool:
+        """Whether the pipeline makes a confidence map when asked (a refinement whose traits
+        say ``produces_confidence``)."""
+        return any(call.stage.traits.produces_confidence for call in self.refinement)
+
 
 def _plain(obj: Any) -> Any:
     """Tuples to lists so YAML/JSON dumps stay plain."""

@@ -65,7 +65,7 @@ def check_odd_window(where: str, window: tuple[int, int], max_pixels: int | None
 
 
 def _bands() -> int:
-    from .kernels import kernel_threads
+    from ..runtime import kernel_threads
 
     # A few bands per thread balances the load; each band pays 2·radius extra rows.
     return 4 * kernel_threads()

@@ -267,7 +267,6 @@ class StripResult:
     confidence: np.ndarray | None = None
     integer_disparity: np.ndarray | None = None  # the optimizer's maps, if ``state.wants.integer_maps``
     integer_disparity_right: np.ndarray | None = None
-    extras: dict = field(default_factory=dict)
     timings: dict[str, float] = field(default_factory=dict)
 
 
@@ -349,7 +348,6 @@ def prepare(
         left_valid=_as_valid(left_valid, shape, "left"),
         right_valid=_as_valid(right_valid, shape, "right"),
         wants=Wants(right=want_right, confidence=want_confidence, integer_maps=_keeps_integer(refinements)),
-        threads=config.runtime.threads,
     )
     for image, valid in ((state.left, state.left_valid), (state.right, state.right_valid)):
         if valid is not None:
@@ -389,8 +387,8 @@ def _working_image(image: np.ndarray, grey: bool) -> np.ndarray:
 def strip_input(prepared: PreparedPair, y0: int, y1: int) -> MatchState:
     """The state one strip's volume stages start from: rows ``[y0, y1)`` plus overlap context.
 
-    A fresh state (cropped copies of the images and masks, its own ``extras`` dict), so it can
-    be shipped to another process and run there with :func:`run_strip`.
+    A fresh state (cropped copies of the images and masks), so it can be shipped to another
+    process and run there with :func:`run_strip`.
     """
     state = prepared.state
     a, b = max(0, y0 - prepared.overlap), min(state.shape[0], y1 + prepared.overlap)
@@ -415,7 +413,7 @@ def run_strip(sub: MatchState, config: PipelineConfig, y0: int, y1: int, *,
     crop = lambda m: None if m is None else (m if whole else m[keep].copy())  # noqa: E731
     return StripResult(y0, y1, crop(sub.disparity), crop(sub.disparity_right) if sub.wants.right else None,
                        crop(sub.confidence), crop(sub.integer_disparity), crop(sub.integer_disparity_right),
-                       sub.extras, timings)
+                       timings)
 
 
 #: The maps of a :class:`StripResult` that :func:`finish` stitches (``confidence`` and the
@@ -439,7 +437,6 @@ def finish(prepared: PreparedPair, results: Iterable[StripResult], config: Pipel
         if (result.y0, result.y1) != next(plan, None):
             raise ValueError("strip results do not match the strip plan")
         _stitch(maps, result, shape, state.wants.right)
-        state.extras.update(result.extras)
         for key, seconds in result.timings.items():
             timings[key] = timings.get(key, 0.0) + seconds
     if next(plan, None) is not None:
@@ -506,7 +503,7 @@ def _right_map_rows(state: MatchState, right_map: np.ndarray, *, to_input: bool)
     map's matches read it). Unchanged when no stage moved the rows."""
     if state.right_rows is None:
         return right_map
-    from ..features.vertical_offset import move_map_rows
+    from .vertical_offset import move_map_rows
 
     return move_map_rows(right_map, state.right_rows.reversed() if to_input else state.right_rows)
 
@@ -621,12 +618,10 @@ def _strip_state(state: MatchState, a: int, b: int) -> MatchState:
     wants = replace(state.wants)
     if a == 0 and b == state.shape[0]:
         return MatchState(state.left, state.right, state.min_disp, state.ndisp, state.left_valid,
-                          state.right_valid, wants=wants, threads=state.threads, extras=state.extras,
-                          gray_cache=state.gray_cache)
+                          state.right_valid, wants=wants, gray_cache=state.gray_cache)
     crop = lambda m: None if m is None else np.ascontiguousarray(m[a:b])  # noqa: E731
     return MatchState(crop(state.left), crop(state.right), state.min_disp, state.ndisp,
-                      crop(state.left_valid), crop(state.right_valid), wants=wants, row_offset=a,
-                      threads=state.threads, extras=dict(state.extras))
+                      crop(state.left_valid), crop(state.right_valid), wants=wants, row_offset=a)
 
 
 def _stage_reads(call, what: str, state: MatchState | None) -> bool:
@@ -734,6 +729,6 @@ def current_config() -> PipelineConfig | None:
 
 
 def _set_threads(threads: int) -> None:
-    from .kernels import set_threads
+    from ..runtime import set_threads
 
     set_threads(threads)  # also numba's, for its prange kernels, once numba has started

@@ -23,7 +23,7 @@ from .kernels.images import luma
 from .state import MatchState
 
 if TYPE_CHECKING:
-    from ..features.vertical_offset import VerticalOffset
+    from .vertical_offset import VerticalOffset
 
 
 def _apply(state: MatchState, func) -> None:
@@ -379,9 +379,9 @@ def row_align(state: MatchState, p: RowAlignParams) -> None:
     the pipeline moves the right-referenced map (``--right``) back onto the input's rows. The
     fit goes into the match record (``stage_notes``). ``measure: false`` applies ``offset``,
     ``tilt_x`` and ``tilt_y`` as given instead (a rig whose rows are known: every pair of a batch
-    gets the same correction, without tracking). See :mod:`stereocli.features.vertical_offset`.
+    gets the same correction, without tracking). See :mod:`stereocli.matching.vertical_offset`.
     """
-    from ..features.vertical_offset import VerticalOffset, fit_vertical_offset, track_rows
+    from .vertical_offset import VerticalOffset, fit_vertical_offset, track_rows
 
     h, w = state.shape
     if not p.measure:
@@ -418,7 +418,7 @@ def row_align(state: MatchState, p: RowAlignParams) -> None:
 
 def _move_right_rows(state: MatchState, plane: VerticalOffset) -> None:
     """Resample the right view (and its mask) onto the left view's rows by ``plane``."""
-    from ..features.vertical_offset import resample_rows
+    from .vertical_offset import resample_rows
 
     state.right = resample_rows(state.right, plane)
     state.right_rows = plane

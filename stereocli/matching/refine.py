@@ -172,7 +172,7 @@ def _confidence_wanted(state: MatchState, params) -> bool:
 @register("refinement", "confidence", ConfidenceParams,
           traits=StageTraits(needs_cost=True, on_winner_costs=_confidence_on_winner_costs,
                              needs_second_best=_confidence_wanted, reads_left_colour=False,
-                             reads_right_colour=False))
+                             reads_right_colour=False, produces_confidence=True))
 def confidence(state: MatchState, p: ConfidenceParams) -> None:
     """Per-pixel confidence in [0, 1] (``match --confidence``): cost uniqueness × LR agreement.
 

@@ -13,8 +13,10 @@ import cv2
 import numpy as np
 
 from .cost import _channels, colour_switch
+from .kernels import geodesic_vote as kg
+from .kernels import local_consistency as klc
 from .kernels import maps as km
-from .kernels import segment as ks
+from .kernels import segment_planes as ksp
 from ..errors import ConfigError
 from ..registry import StageTraits, param, register
 from .state import MatchState
@@ -46,7 +48,8 @@ class LocalConsistencyParams:
                               "(separable: false): a hole has no bin of its own to compare along a line")
 
 
-@register("refinement", "local_consistency", LocalConsistencyParams, traits=StageTraits(map_copies=10))
+@register("refinement", "local_consistency", LocalConsistencyParams,
+          traits=StageTraits(map_copies=10, produces_confidence=True))
 def local_consistency(state: MatchState, p: LocalConsistencyParams) -> None:
     """Locally consistent refinement (Mattoccia 2009): neighbours vote for disparity hypotheses.
 
@@ -69,8 +72,8 @@ def local_consistency(state: MatchState, p: LocalConsistencyParams) -> None:
     left = _channels(state.left if p.color else state.gray("left"))
     right = _channels(state.right if p.color else state.gray("right"))
     if p.separable:
-        left_packed = ks.packed_quarter_levels(left)
-        right_packed = ks.packed_quarter_levels(right) if p.right else np.zeros((0, 0), np.int64)
+        left_packed = klc.packed_quarter_levels(left)
+        right_packed = klc.packed_quarter_levels(right) if p.right else np.zeros((0, 0), np.int64)
         tables = _vote_tables(left.shape[2], p)
         # An empty todo stands for every pixel (no min_spread window to measure).
         todo = (_discontinuity_windows(disp, p.band or p.radius, p.min_spread, False) if p.min_spread > 0
@@ -78,8 +81,8 @@ def local_consistency(state: MatchState, p: LocalConsistencyParams) -> None:
         conf = None
         for vertical in (False, True):
             bins = km.disparity_bins(disp, state.min_disp, state.ndisp)
-            centres = np.flatnonzero(ks.line_centre_mask(bins, todo, p.band or p.radius, int(p.min_change), vertical))
-            disp, share = ks.local_consistency_line(disp, bins, centres, left_packed, right_packed, state.min_disp,
+            centres = np.flatnonzero(klc.line_centre_mask(bins, todo, p.band or p.radius, int(p.min_change), vertical))
+            disp, share = klc.local_consistency_line(disp, bins, centres, left_packed, right_packed, state.min_disp,
                                                     state.ndisp, p.radius, *tables, int(p.min_change), vertical,
                                                     bool(p.right))
             conf = share if conf is None else conf * share
@@ -88,7 +91,7 @@ def local_consistency(state: MatchState, p: LocalConsistencyParams) -> None:
         # Without the right-image term every match weight is exp(−Δ/∞) = 1 exactly.
         gamma_t = float(p.gamma_t) if p.right else np.inf
         todo = _discontinuity_windows(disp, p.band or p.radius, p.min_spread, p.fill_invalid)
-        disp, conf = ks.local_consistency(
+        disp, conf = klc.local_consistency(
             disp, left, right, state.min_disp, state.ndisp, p.radius, float(p.gamma_s), float(p.gamma_c),
             gamma_t, bool(p.fill_invalid), todo, int(p.min_change),
         )
@@ -135,22 +138,22 @@ def geodesic_vote(state: MatchState, p: GeodesicVoteParams) -> None:
     """
     disp = np.ascontiguousarray(state.disparity, dtype=np.float32)
     left = _channels(state.left if p.color else state.gray("left"))
-    packed = ks.packed_quarter_levels(left)
+    packed = klc.packed_quarter_levels(left)
     # Weight passed between neighbours (distance and colour), by their colour difference.
     passed = np.exp(-1.0 / p.gamma_s - _colour_steps(left.shape[2]) / p.gamma_c)
     everywhere = np.zeros((0, 0), np.bool_)
     passes = {"both": (False, True), "rows": (False,), "columns": (True,)}[p.lines]
     for vertical in passes:
         bins = km.disparity_bins(disp, state.min_disp, state.ndisp)
-        centre = ks.line_centre_mask(bins, everywhere, p.band, p.min_change, vertical)
-        disp = ks.geodesic_vote_line(disp, bins, packed, centre, passed, int(p.min_change), int(p.max_bins),
+        centre = klc.line_centre_mask(bins, everywhere, p.band, p.min_change, vertical)
+        disp = kg.geodesic_vote_line(disp, bins, packed, centre, passed, int(p.min_change), int(p.max_bins),
                                      int(state.ndisp), vertical, float(p.min_lead))
     state.disparity = disp
 
 
 def _colour_steps(channels: int) -> np.ndarray:
     """The vote tables' index: a summed channel difference in quarter grey levels (what
-    :func:`~stereocli.matching.kernels.segment.packed_quarter_levels` colours give), as the mean
+    :func:`~stereocli.matching.kernels.local_consistency.packed_quarter_levels` colours give), as the mean
     channel difference in grey levels, for every possible value."""
     return np.arange(1020 * channels + 1) * (0.25 / channels)
 
@@ -229,13 +232,13 @@ def segment_image(image: np.ndarray, spatial_radius: int, colour_radius: float, 
         filtered = cv2.pyrMeanShiftFiltering(img8, float(spatial_radius), float(colour_radius))
     else:
         raise ValueError(f"segment_image: unknown smoothing {smoothing!r}")
-    return ks.label_regions(np.ascontiguousarray(filtered, dtype=np.float32), float(tolerance), int(min_size))
+    return ksp.label_regions(np.ascontiguousarray(filtered, dtype=np.float32), float(tolerance), int(min_size))
 
 
 def fit_segment_planes(disp: np.ndarray, labels: np.ndarray, p: PlaneFitParams):
-    """Planes per segment (see :func:`stereocli.matching.kernels.segment.fit_planes`)."""
-    order, starts, counts = ks.pixels_by_segment(labels)
-    planes, support, inliers = ks.fit_planes(
+    """Planes per segment (see :func:`stereocli.matching.kernels.segment_planes.fit_planes`)."""
+    order, starts, counts = ksp.pixels_by_segment(labels)
+    planes, support, inliers = ksp.fit_planes(
         np.ascontiguousarray(disp, dtype=np.float32), labels, order, starts,
         0 if p.method == "ransac" else 1, p.iterations, float(p.inlier), p.min_points, p.seed,
         float(p.slope_bin),
@@ -265,4 +268,4 @@ def plane_fit(state: MatchState, p: PlaneFitParams) -> None:
     use = (support >= np.maximum(p.min_points, p.min_reliable * counts)) & (inliers >= p.min_inliers * np.maximum(support, 1)) & (inliers > 0)
     lo, hi = float(state.min_disp), float(state.min_disp + state.ndisp - 1)
     outlier = float(p.outlier) if p.replace != "invalid" else np.inf
-    state.disparity = ks.replace_by_planes(disp, labels, planes, use, outlier, p.replace == "all", lo, hi)
+    state.disparity = ksp.replace_by_planes(disp, labels, planes, use, outlier, p.replace == "all", lo, hi)

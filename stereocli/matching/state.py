@@ -42,7 +42,7 @@ the volume entries around each winner); ``cost`` stays None, and the refinements
 ``on_winner_costs`` variants, which must give the same result as on the volume.
 
 When the image is processed in row strips, ``row_offset`` is the strip's first row in the full
-image and ``rows_valid`` the slice of the strip's rows that is kept (the rest is overlap).
+image.
 """
 
 from __future__ import annotations
@@ -55,7 +55,7 @@ import numpy as np
 from .kernels.images import luma
 
 if TYPE_CHECKING:
-    from ..features.vertical_offset import VerticalOffset
+    from .vertical_offset import VerticalOffset
 
 
 @dataclass
@@ -103,11 +103,9 @@ class MatchState:
     mirrored_disparity: np.ndarray | None = None  # (H, W) float32 px, right-referenced: for a ``needs_mirrored`` stage
     wants: Wants = field(default_factory=Wants)  # what later stages and outputs need
     row_offset: int = 0  # first image row of this (strip) state
-    threads: int = 0  # 0 = numba default
-    extras: dict = field(default_factory=dict)  # stage-to-stage data (e.g. raw costs for MI)
     notes: dict = field(default_factory=dict)  # stage name -> JSON-ready facts for the match record
     # Set by a stage that resampled the right view's rows (``row_align``): the
-    # :class:`~stereocli.features.vertical_offset.VerticalOffset` it moved them by. The pipeline
+    # :class:`~stereocli.matching.vertical_offset.VerticalOffset` it moved them by. The pipeline
     # moves right-referenced maps between ``right``'s rows and the input's with it.
     right_rows: VerticalOffset | None = None
     gray_cache: dict = field(default_factory=dict, repr=False)  # which -> (image, its grey), see gray()

@@ -12,9 +12,9 @@ separate processes and share the disk cache:
 
 * ``volume_large``: the volume stages (cost, optimizer, volume refinements) of a 448×320 pair
   with 96 disparities, a volume large enough for the default SGM's coarse-to-fine search. It
-  hands the search the pair's true half-resolution disparities, so this task compiles the fine
-  level only (and the image halving), at the same time as ``volume_small`` compiles the
-  coarse level;
+  hands the search the pair's true half-resolution disparities in place of its coarse level
+  (:func:`with_coarse_level`), so this task compiles the fine level only (and the image
+  halving), at the same time as ``volume_small`` compiles the coarse level;
 * ``maps_1`` and ``maps_2``: the map refinements (LR check, fill, median, votes, smoothing) on
   a synthetic disparity map, without running the volume stages; ``maps_1`` runs the first,
   third, fifth, ... of them, ``maps_2`` the others (so ``accurate``'s two slowest to compile,
@@ -35,7 +35,9 @@ import sys
 import threading
 import time
 from dataclasses import replace
+from functools import partial
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -92,7 +94,6 @@ def _synthetic_disparity(shape: tuple[int, int], ndisp: int, seed: int) -> np.nd
 def run_task(task: str, config: PipelineConfig) -> float:
     """Run one warm-up task (see the module docstring) in this process; returns its seconds."""
     from .kernels.images import half_resolution
-    from .optimize.sgm import GIVEN_COARSE
     from .pipeline import StripResult, finish, prepare, run_strip, run_strips, strip_input
 
     if task not in TASKS:
@@ -118,16 +119,32 @@ def run_task(task: str, config: PipelineConfig) -> float:
                 strip.integer_disparity_right = np.floor(strip.disparity_right)
         finish(prepared, [strip], config)
     elif task == "volume_large":
+        taken = []
+
+        def true_coarse_level(*_) -> np.ndarray:
+            taken.append(True)
+            return _true_disparity(width, height, ndisp)[::2, ::2] / np.float32(2.0)
+
         sub = strip_input(prepared, 0, height)
-        sub.extras[GIVEN_COARSE] = _true_disparity(width, height, ndisp)[::2, ::2] / np.float32(2.0)
-        run_strip(sub, config, 0, height)
-        if GIVEN_COARSE not in sub.extras:
-            # The search took the hint (it goes coarse to fine): compile the image halving its
-            # coarse level starts with, which the full-range search of volume_small never runs.
+        run_strip(sub, with_coarse_level(config, true_coarse_level), 0, height)
+        if taken:
+            # The search went coarse to fine: compile the image halving its coarse level starts
+            # with, which the full-range search of volume_small never runs.
             half_resolution(sub.left)
     else:
         run_strips(prepared, config)
     return time.perf_counter() - t0
+
+
+def with_coarse_level(config: PipelineConfig, coarse_level: Callable) -> PipelineConfig:
+    """``config`` whose optimizer, if its traits say ``takes_coarse_level``, calls
+    ``coarse_level(state, params, cost)`` instead of computing a coarse-to-fine search's coarse
+    level (``config`` itself otherwise)."""
+    call = config.optimizer
+    if not call.stage.traits.takes_coarse_level:
+        return config
+    stage = replace(call.stage, func=partial(call.stage.func, coarse_level=coarse_level))
+    return replace(config, optimizer=replace(call, stage=stage))
 
 
 def plan(labels: list[str], jobs: int) -> list[list[tuple[str, str]]]:

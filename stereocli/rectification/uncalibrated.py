@@ -41,7 +41,8 @@ import cv2
 import numpy as np
 
 from ..errors import DataError
-from ..features.points import PointMatches, grey_uint8, match_points
+from ..features.points import PointMatches, match_points
+from ..io.images import grey_uint8
 from .maps import INTERPOLATIONS
 
 #: Matches the epipolar geometry needs (a fundamental matrix has 7 degrees of freedom; far

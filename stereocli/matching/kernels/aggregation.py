@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import chunk_kernel, for_rows, njit, prange
+from ...runtime import chunk_kernel, for_rows, njit, prange
 
 
 @njit(cache=True, inline="always")

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import njit, prange
+from ...runtime import njit, prange
 
 from .dp import _dt_truncated_linear
 

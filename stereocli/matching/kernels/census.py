@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import chunk_kernel, for_rows, intrinsic, njit
+from ...runtime import chunk_kernel, for_rows, intrinsic, njit
 
 
 @chunk_kernel

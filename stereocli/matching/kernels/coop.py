@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import njit, prange
+from ...runtime import njit, prange
 
 
 @njit(cache=True, parallel=True)

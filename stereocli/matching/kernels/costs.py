@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import chunk_kernel, for_rows, njit, prange
+from ...runtime import chunk_kernel, for_rows, njit, prange
 from .census import _popcount64
 
 #: pixel-wise cost modes of :func:`window_cost_volume` / :func:`pixel_cost_volume`

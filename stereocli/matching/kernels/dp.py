@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import njit, prange
+from ...runtime import njit, prange
 
 INF = np.float32(np.inf)
 

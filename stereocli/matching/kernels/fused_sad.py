@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import chunk_kernel, for_chunks, for_rows, njit
+from ...runtime import chunk_kernel, for_chunks, for_rows, njit
 from .winners import _subpixel_offset
 
 INF = np.float32(np.inf)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import chunk_kernel, for_rows, njit
+from ...runtime import chunk_kernel, for_rows, njit
 
 INF = np.float32(np.inf)
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import chunk_kernel, for_chunks, for_rows, njit
+from ...runtime import chunk_kernel, for_chunks, for_rows, njit
 
 # The eight directions a flagged pixel looks along for its candidates (row step, column step).
 _STEP_Y = np.array([0, 0, 1, -1, 1, 1, -1, -1], np.int64)

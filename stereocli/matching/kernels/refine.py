@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import chunk_kernel, for_chunks, for_rows, njit, side_by_side
+from ...runtime import chunk_kernel, for_chunks, for_rows, njit, side_by_side
 from .aggregation import channel_planes
 
 INF = np.float32(np.inf)

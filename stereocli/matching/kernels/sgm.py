@@ -43,7 +43,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import chunk_kernel, for_chunks, for_rows, intrinsic, njit
+from ...runtime import chunk_kernel, for_chunks, for_rows, intrinsic, njit
 
 INF = np.float32(np.inf)
 INT16_MAX = 32767

@@ -41,7 +41,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import chunk_kernel, for_chunks, for_rows, njit
+from ...runtime import chunk_kernel, for_chunks, for_rows, njit
 from .sgm import DOWN_DIRECTIONS, GAP, INF, INT16_MAX, STRIPES, _min_packed, _penalty2, borrowed, stripe_pass
 
 #: Sum value of a hypothesis outside a pixel's window in an expanded volume (:func:`expand_sums`).

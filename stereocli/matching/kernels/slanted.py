@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import chunk_kernel, for_rows, njit
+from ...runtime import chunk_kernel, for_rows, njit
 from .census import _popcount64
 
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import chunk_kernel, for_rows, njit, prange
+from ...runtime import chunk_kernel, for_rows, njit, prange
 from .maps import disparity_bins
 
 INF = np.float32(np.inf)

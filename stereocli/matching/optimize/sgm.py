@@ -23,6 +23,7 @@ of H·W·D on MiddEval3).
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import Callable
 
 import numpy as np
 
@@ -39,11 +40,9 @@ from ..state import MatchState, Wants, WinnerCosts
 S_MAX = 65535
 #: Most disparities the kernels handle (the winner's index is packed in 16 bits).
 MAX_NDISP = 65535
-#: ``state.extras`` key of half-resolution disparities handed to the coarse-to-fine search
-#: (as :func:`coarse_disparity` returns them): it then skips its coarse level. The warm-up
-#: uses it to compile the fine level's kernels in one process while another compiles the
-#: coarse level's.
-GIVEN_COARSE = "sgm_given_coarse_disparity"
+#: ``f(state, params, cost) -> disparities``: a coarse-to-fine search's coarse level, as
+#: :func:`coarse_disparity` computes it.
+CoarseLevel = Callable[[MatchState, "SGMParams", object], np.ndarray]
 
 
 @dataclass(frozen=True)
@@ -104,7 +103,7 @@ def coarse_disparity(state: MatchState, p: SGMParams, cost) -> np.ndarray:
     hi_d = int(np.ceil((state.min_disp + state.ndisp - 1) / 2))
     hi_d = lo_d + -(-(hi_d - lo_d + 1) // COARSE_RANGE_STEP) * COARSE_RANGE_STEP - 1
     sub = MatchState(half(state.left), half(state.right), lo_d, hi_d - lo_d + 1, half_mask(state.left_valid),
-                     half_mask(state.right_valid), threads=state.threads,
+                     half_mask(state.right_valid),
                      wants=Wants(right=True, integer_cost=state.wants.integer_cost, volume=False))
     # run_sgm computes this level's costs itself (windowed if it searches coarse to fine again,
     # else the full range) and only its winners are read here.
@@ -162,13 +161,12 @@ def _quantized(state: MatchState, p: SGMParams) -> tuple[np.ndarray, int, float,
     return cq, mul, scale, p1, p2
 
 
-def _run_windowed(state: MatchState, p: SGMParams, cost) -> None:
-    """Coarse-to-fine SGM: windows from the half-resolution disparities, costs on the windows
-    only (the cost stage's ``windowed`` kernel, else its dense volume gathered), windowed
-    SGM. Leaves ``winner`` (or, if a later stage needs it, the dense sums in ``cost``)."""
-    coarse = state.extras.pop(GIVEN_COARSE, None)
-    if coarse is None:
-        coarse = coarse_disparity(state, p, cost)
+def _run_windowed(state: MatchState, p: SGMParams, cost, coarse_level: CoarseLevel | None = None) -> None:
+    """Coarse-to-fine SGM: windows from the half-resolution disparities (``coarse_level``,
+    default :func:`coarse_disparity`), costs on the windows only (the cost stage's ``windowed``
+    kernel, else its dense volume gathered), windowed SGM. Leaves ``winner`` (or, if a later
+    stage needs it, the dense sums in ``cost``)."""
+    coarse = (coarse_level or coarse_disparity)(state, p, cost)
     lo, hi = search_windows(coarse, state.shape, state.min_disp, state.ndisp, p.margin, p.radius, p.max_window)
     runs = kw.window_runs(lo, hi, state.ndisp, p.align)
     windowed = cost.stage.traits.windowed
@@ -177,11 +175,11 @@ def _run_windowed(state: MatchState, p: SGMParams, cost) -> None:
         costs, state.cost_max = windowed(state, cost.params, runs)
         exact = _integer_costs(state.cost_max, costs.dtype, p)
     if exact is not None:
-        mul, scale, p1, p2 = exact
+        mul, _, p1, p2 = exact
     else:
         if state.cost is None:  # the pipeline left the cost to this stage
             run_cost_stage(state, cost)
-        cq, mul, scale, p1, p2 = _quantized(state, p)
+        cq, mul, _, p1, p2 = _quantized(state, p)
         costs = kw.gather_runs(cq, runs[2], runs[3], runs[4], runs[5])
         del cq
     guide = np.ascontiguousarray(state.gray("left"), dtype=np.float32)
@@ -189,7 +187,6 @@ def _run_windowed(state: MatchState, p: SGMParams, cost) -> None:
                         state.wants.right, state.wants.second_best, cost_mul=mul,
                         want_right_costs=state.wants.right_costs)
     del costs
-    state.extras["sgm_scale"] = scale
     state.cost_max = float(S_MAX)
     state.disparity = run["disparity"]
     if state.wants.right:
@@ -202,19 +199,21 @@ def _run_windowed(state: MatchState, p: SGMParams, cost) -> None:
                                    run["second"])
 
 
-def run_sgm(state: MatchState, p: SGMParams, cost=None, coarse: bool | None = None) -> None:
+def run_sgm(state: MatchState, p: SGMParams, cost=None, coarse: bool | None = None,
+            coarse_level: CoarseLevel | None = None) -> None:
     """Run SGM on ``state.cost``; sets ``disparity`` and replaces ``cost`` by the uint16 sums
     (coarse-to-fine: see :func:`_run_windowed`). ``cost``: the configured cost StageCall, which
-    the coarse-to-fine search runs itself (without it, only ``state.cost`` is used)."""
+    the coarse-to-fine search runs itself (without it, only ``state.cost`` is used);
+    ``coarse_level``: what that search's coarse level gives instead of computing it."""
     h, w = state.shape
     if (p.coarse if coarse is None else coarse) and cost is not None and _coarse_to_fine_pays(p, h, w, state.ndisp):
-        _run_windowed(state, p, cost)
+        _run_windowed(state, p, cost, coarse_level)
         return
     if state.cost is None and cost is not None:  # left to this stage (runs_cost, coarse level)
         run_cost_stage(state, cost)
     if state.cost is None:
         raise ConfigError("optimizer.sgm: no cost volume (the cost stage did not run)")
-    cq, mul, scale, p1, p2 = _quantized(state, p)
+    cq, mul, _, p1, p2 = _quantized(state, p)
     guide = np.ascontiguousarray(state.gray("left"), dtype=np.float32)
     acc, state.disparity, right = ks.sgm_aggregate(cq, guide, p.paths, p1, p2, float(p.p2_gamma),
                                                    state.min_disp, state.wants.right, cost_mul=mul)
@@ -223,7 +222,6 @@ def run_sgm(state: MatchState, p: SGMParams, cost=None, coarse: bool | None = No
     del cq
     state.cost = acc
     state.cost_max = float(S_MAX)
-    state.extras["sgm_scale"] = scale
 
 
 def _coarse_to_fine_pays(p: SGMParams, height: int, width: int, ndisp: int) -> bool:
@@ -256,9 +254,9 @@ def _searches_coarse_to_fine(p: SGMParams) -> bool:
 @register("optimizer", "sgm", SGMParams,
           traits=StageTraits(volume_copies=0.25, accepts_integer_cost=True, integer_volume_copies=0.5,
                              buffer_bytes=_buffer_bytes, runs_cost=_searches_coarse_to_fine,
-                             small_twin=_small_twin, reads_left_colour=False,
+                             small_twin=_small_twin, takes_coarse_level=True, reads_left_colour=False,
                              reads_right_colour=False))
-def sgm(state: MatchState, p: SGMParams, cost=None) -> None:
+def sgm(state: MatchState, p: SGMParams, cost=None, coarse_level: CoarseLevel | None = None) -> None:
     """Semi-global matching: sum of 1-D smoothness-constrained path costs (Hirschmüller 2008).
 
     P1 penalises 1-px disparity steps (slanted surfaces), P2 larger jumps (discontinuities);
@@ -273,4 +271,4 @@ def sgm(state: MatchState, p: SGMParams, cost=None) -> None:
     if state.ndisp > MAX_NDISP:
         raise ConfigError(f"optimizer.sgm: searches at most {MAX_NDISP} disparities (ndisp={state.ndisp}); "
                           "lower ndisp or choose another optimizer")
-    run_sgm(state, p, cost)
+    run_sgm(state, p, cost, coarse_level=coarse_level)

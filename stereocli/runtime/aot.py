@@ -4,16 +4,18 @@ JIT runtime and loading each kernel from its cache (a cost every ``stereocli`` p
 and a first run after installing compiles nothing on that path.
 
 ``pip install .`` builds them into the installed package (``setup.py``; a failure there only
-leaves them out), ``python -m stereocli.matching.kernels.aot`` into the source tree (for a
-checkout). :func:`find` hands :func:`stereocli.matching.kernels._run` the compiled function for a
-kernel and the types of its arguments, or None: then the kernel runs from numba's JIT as
-before. The results are the same bit for bit (``tests/test_aot.py``).
+leaves them out), ``python -m stereocli.runtime.aot`` into the source tree (for a checkout).
+:func:`find` hands :func:`stereocli.runtime._run` the compiled function for a kernel and the
+types of its arguments, or None: then the kernel runs from numba's JIT as before. The results
+are the same bit for bit (``tests/test_aot.py``).
 
-A built folder holds one extension module per kernel and ``manifest.json``; it is used only if
-the manifest matches this process: the same kernel sources (a hash of the ``kernels`` package's
-files, so an edited kernel never runs stale), the same CPU (the modules are compiled for the
-host CPU's instruction set: AVX-512 code would crash an older CPU) and the same NumPy major
-version. ``STEREOCLI_AOT=0`` turns them off.
+A kernel is named by its module within the ``stereocli`` package and its function
+(:func:`kernel_name`: ``matching.kernels.census._census_rows``). A built folder holds one
+extension module per kernel and ``manifest.json``; it is used only if the manifest matches this
+process: the same kernel sources (a hash of the runtime's files and of the packages holding the
+listed kernels, so an edited kernel never runs stale), the same CPU (the modules are compiled
+for the host CPU's instruction set: AVX-512 code would crash an older CPU) and the same NumPy
+major version. ``STEREOCLI_AOT=0`` turns them off.
 
 The kernels and argument types compiled are those of the ``default``, ``fast``, ``accurate``,
 ``realtime`` and ``quality`` presets, listed in :data:`SIGNATURES_FILE` (``tests/test_aot.py``
@@ -32,15 +34,19 @@ import sys
 import tempfile
 import threading
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-KERNELS_DIR = Path(__file__).resolve().parent
-#: Where ``pip install .`` and ``python -m stereocli.matching.kernels.aot`` put the modules.
-BUILD_DIR = KERNELS_DIR / "_aot"
-#: One line per compiled kernel: ``module.kernel<TAB>type, type, ...`` (numba's type names).
-SIGNATURES_FILE = KERNELS_DIR / "aot_signatures.txt"
+RUNTIME_DIR = Path(__file__).resolve().parent
+#: The ``stereocli`` package's folder: kernels are named by their module within it.
+PACKAGE_DIR = RUNTIME_DIR.parent
+#: Where ``pip install .`` and ``python -m stereocli.runtime.aot`` put the modules.
+BUILD_DIR = RUNTIME_DIR / "_aot"
+#: One line per compiled kernel: ``module.kernel<TAB>type, type, ...`` (:func:`kernel_name`;
+#: numba's type names).
+SIGNATURES_FILE = RUNTIME_DIR / "aot_signatures.txt"
 MANIFEST = "manifest.json"
 #: Written by ``setup.py`` into :data:`BUILD_DIR` when the build at install failed: the reason.
 FAILED_NOTE = "BUILD_FAILED.txt"
@@ -94,11 +100,28 @@ def _dtype_name(dtype: np.dtype) -> str:
     return name
 
 
+def kernel_name(function) -> str | None:
+    """``"module.function"`` of a kernel's Python function, its module named within the
+    ``stereocli`` package (``matching.kernels.census._census_rows``); None outside it."""
+    module = getattr(function, "__module__", None) or ""
+    if not module.startswith("stereocli."):
+        return None
+    return f"{module.removeprefix('stereocli.')}.{function.__name__}"
+
+
 def kernel_sources_hash() -> str:
-    """Hash of the ``kernels`` package's Python files (every kernel and helper they inline)."""
+    """Hash of the Python files of the runtime (how the kernels are compiled) and of every package
+    holding a listed kernel (each kernel and the helpers it inlines). Without the list (a damaged
+    install), the runtime's alone: no build matches it."""
+    try:
+        listed = {line.split("\t", 1)[0] for line in SIGNATURES_FILE.read_text().splitlines()
+                  if line.strip() and not line.startswith("#")}
+    except OSError:
+        listed = set()
+    folders = {RUNTIME_DIR} | {PACKAGE_DIR.joinpath(*kernel.split(".")[:-2]) for kernel in listed}
     digest = hashlib.sha256()
-    for path in sorted(KERNELS_DIR.glob("*.py")):
-        digest.update(path.name.encode() + b"\0" + path.read_bytes())
+    for path in sorted(path for folder in folders for path in folder.glob("*.py")):
+        digest.update(path.relative_to(PACKAGE_DIR).as_posix().encode() + b"\0" + path.read_bytes())
     return digest.hexdigest()[:16]
 
 
@@ -140,13 +163,27 @@ class _BuiltKernel:
                                   for i, types in enumerate(self.signatures)}
             except Exception as exc:  # noqa: BLE001 - a damaged module: this kernel from the JIT
                 self.functions = {}
-                _not_loaded.append(f"{self.name} ({exc})")
+                _BUILD.not_loaded.append(f"{self.name} ({exc})")
         return self.functions
 
 
-_table: list = [None]  # {"module.function": _BuiltKernel} of the usable build, once per process
-_table_lock = threading.Lock()
-_not_loaded: list = []  # kernels of the build whose module did not load
+@dataclass
+class _UsedBuild:
+    """The built folder this process uses, read on its first kernel lookup (once per process)."""
+
+    #: ``{"module.function": _BuiltKernel}`` of the usable build ({} if none); None before the
+    #: first lookup.
+    table: dict | None = None
+    #: Why the build is not used ("" while it is, or before the first lookup).
+    why_not: str = ""
+    #: Kernels of the build whose module did not load (they run from numba's JIT).
+    not_loaded: list = field(default_factory=list)
+    #: Held while the table is read and while a module loads: threads of a Dask worker may match
+    #: pairs at once.
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+
+_BUILD = _UsedBuild()
 
 
 def find(kernel, args: tuple):
@@ -155,7 +192,8 @@ def find(kernel, args: tuple):
 
     A kernel's extension module is loaded on its first call, so a process loads only the
     modules of the kernels its stages run (and imports no other kernel module)."""
-    table = _table[0]
+    used = _BUILD
+    table = used.table
     if table is None:
         table = _loaded_table()
     if not table:
@@ -163,25 +201,23 @@ def find(kernel, args: tuple):
     function = getattr(kernel, "py_func", None)
     if function is None:
         return None
-    built = table.get(f"{function.__module__.rsplit('.', 1)[-1]}.{function.__name__}")
+    built = table.get(kernel_name(function))
     if built is None:
         return None
     functions = built.functions
     if functions is None:
-        with _table_lock:  # threads of a Dask worker may match pairs at once
+        with used.lock:
             functions = built.load()
     return functions.get(tuple(type_name(a) for a in args))
 
 
-_why_not: list = [""]  # why the build is not used ("" while it is, or before the first lookup)
-
-
 def _loaded_table() -> dict:
     """The table of the built folder, read on first use (once per process)."""
-    with _table_lock:  # threads of a Dask worker may match pairs at once
-        if _table[0] is None:
-            _table[0], _why_not[0] = _usable_build()
-        return _table[0]
+    used = _BUILD
+    with used.lock:
+        if used.table is None:
+            used.table, used.why_not = _usable_build()
+        return used.table
 
 
 def _usable_build() -> tuple[dict, str]:
@@ -212,10 +248,11 @@ def _usable_build() -> tuple[dict, str]:
 def describe() -> str:
     """One line on the kernels compiled at install, for records and ``--show-versions``."""
     table = _loaded_table()
+    not_loaded = _BUILD.not_loaded
     if table:
-        broken = f"; {len(_not_loaded)} did not load: {', '.join(_not_loaded)}" if _not_loaded else ""
+        broken = f"; {len(not_loaded)} did not load: {', '.join(not_loaded)}" if not_loaded else ""
         return f"{len(table)} compiled at install; others from numba's JIT{broken}"
-    return f"none compiled at install ({_why_not[0]}): numba's JIT"
+    return f"none compiled at install ({_BUILD.why_not}): numba's JIT"
 
 
 def install_failure(folder: Path = BUILD_DIR) -> str:
@@ -232,10 +269,10 @@ def missing_build_advice() -> str:
     "" when the build is in use (or was turned off with ``STEREOCLI_AOT=0``)."""
     if _loaded_table() or os.environ.get("STEREOCLI_AOT", "1") == "0":
         return ""
-    checkout = (KERNELS_DIR.parents[2] / "pyproject.toml").is_file()
-    fix = ("python -m stereocli.matching.kernels.aot" if checkout else
+    checkout = (PACKAGE_DIR.parent / "pyproject.toml").is_file()
+    fix = ("python -m stereocli.runtime.aot" if checkout else
            "pip install --force-reinstall --no-deps <stereocli source> with a C compiler and a numba that has numba.pycc")
-    return (f"the kernels were not compiled ahead of time ({_why_not[0]}); numba compiles them now, once "
+    return (f"the kernels were not compiled ahead of time ({_BUILD.why_not}); numba compiles them now, once "
             f"(later runs load them from its cache); to build them: {fix}")
 
 
@@ -317,7 +354,15 @@ def build(folder: Path = BUILD_DIR, jobs: int = 0, log=print, only: list[str] | 
     return time.perf_counter() - started
 
 
-_runtime_objects: dict = {}  # numba's C runtime objects, compiled once per build process
+@dataclass
+class _BuildProcess:
+    """What a build process (:func:`_build_module`'s worker) keeps between its modules."""
+
+    #: numba's C runtime objects, compiled for the first module, linked into every module.
+    runtime_objects: list | None = None
+
+
+_BUILD_PROCESS = _BuildProcess()
 
 
 def _build_module(job: tuple[str, str, dict[str, list[tuple[str, ...]]], str]) -> float:
@@ -358,10 +403,10 @@ def _build_module(job: tuple[str, str, dict[str, list[tuple[str, ...]]], str]) -
             own, shared = sources[:1], sources[1:]
             options = dict(include_dirs=self._toolchain.get_python_include_dirs(), macros=self._get_mixin_defines(),
                            extra_cflags=self._get_extra_cflags())
-            if "objects" not in _runtime_objects:
+            if _BUILD_PROCESS.runtime_objects is None:
                 runtime_dir = tempfile.mkdtemp(prefix="runtime-", dir=scratch)
-                _runtime_objects["objects"] = self._toolchain.compile_objects(shared, runtime_dir, **options)
-            return self._toolchain.compile_objects(own, build_dir, **options) + _runtime_objects["objects"]
+                _BUILD_PROCESS.runtime_objects = self._toolchain.compile_objects(shared, runtime_dir, **options)
+            return self._toolchain.compile_objects(own, build_dir, **options) + _BUILD_PROCESS.runtime_objects
 
     cc = SharedRuntimeCC(name)
     cc.output_dir = folder
@@ -388,19 +433,19 @@ def numba_type(name: str):
 
 
 def export_name(kernel: str, i: int) -> str:
-    """Name of ``"module.kernel"``'s ``i``-th signature in its extension module."""
+    """Name of ``"module.kernel"``'s ``i``-th signature in its extension module (a C name)."""
     module, function = kernel.rsplit(".", 1)
-    return f"{module}__{function.lstrip('_')}_{i}"
+    return f"{module.replace('.', '_')}__{function.lstrip('_')}_{i}"
 
 
 def _python_function(kernel: str):
     module, function = kernel.rsplit(".", 1)
-    value = getattr(importlib.import_module(f"stereocli.matching.kernels.{module}"), function)
+    value = getattr(importlib.import_module(f"stereocli.{module}"), function)
     return getattr(value, "py_func", value)
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m stereocli.matching.kernels.aot [FOLDER]``: build into FOLDER (default: the package)."""
+    """``python -m stereocli.runtime.aot [FOLDER]``: build into FOLDER (default: the package)."""
     argv = sys.argv[1:] if argv is None else argv
     folder = Path(argv[0]) if argv else BUILD_DIR
     print(f"compiling the usual presets' kernels ahead of time into {folder} ...")

@@ -1,5 +1,5 @@
 """numba for the kernels, started on first use: the decorators the kernel modules use (through
-the package), and the options of a chunk kernel.
+:mod:`stereocli.runtime`), and the options of a chunk kernel.
 
 The kernel modules take ``njit``, ``prange`` and ``intrinsic`` from here rather than from numba:
 they are numba's, made lazy (:class:`LazyKernel`), so that importing the kernels does not import
@@ -13,12 +13,12 @@ import functools
 import sys
 import threading
 import warnings
+from dataclasses import dataclass, field
 
 # The expected note of numba's parallel pipeline on a :func:`chunk_kernel` (it has no prange).
 warnings.filterwarnings("ignore", message="(?s).*no transformation for parallel execution was possible")
 
 _numba_threads = threading.local()  # .count: the calling thread's count for numba's prange kernels (0: its default)
-_start_lock = threading.Lock()
 
 
 def prange_only() -> dict:
@@ -34,8 +34,19 @@ def prange_only() -> dict:
 
 # --- numba, started on first use -------------------------------------------------------------------
 
-_lazy_objects: list = []  # every LazyKernel and LazyIntrinsic made before numba started
-_numba_started = [False]
+@dataclass
+class _NumbaStart:
+    """Whether numba has started in this process (:func:`start_numba`), and what waits for it."""
+
+    #: Set last, once every lazy object is replaced: other threads use the dispatchers only then.
+    started: bool = False
+    #: Every :class:`LazyKernel` and :class:`LazyIntrinsic` made before numba started.
+    lazy_objects: list = field(default_factory=list)
+    #: Held while numba starts: threads (a Dask worker's) may need the JIT at once.
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+
+_NUMBA = _NumbaStart()
 
 
 class LazyKernel:
@@ -59,7 +70,7 @@ class LazyKernel:
 
     def dispatcher(self):
         """numba's dispatcher (starting numba if needed)."""
-        if not _numba_started[0]:
+        if not _NUMBA.started:
             start_numba()
         if self._made is None:  # made while numba was starting (a module imported meanwhile)
             import numba
@@ -93,12 +104,12 @@ class LazyIntrinsic:
 def njit(*args, **options):
     """``numba.njit``, lazy: ``@njit`` or ``@njit(cache=True, ...)`` (keyword options only)."""
     def decorate(func):
-        if _numba_started[0]:
+        if _NUMBA.started:
             import numba
 
             return numba.njit(**options)(func)
         kernel = LazyKernel(func, options)
-        _lazy_objects.append(kernel)
+        _NUMBA.lazy_objects.append(kernel)
         return kernel
 
     return decorate(args[0]) if args else decorate
@@ -106,12 +117,12 @@ def njit(*args, **options):
 
 def intrinsic(func):
     """``numba.extending.intrinsic``, lazy."""
-    if _numba_started[0]:
+    if _NUMBA.started:
         from numba.extending import intrinsic as numba_intrinsic
 
         return numba_intrinsic(func)
     made = LazyIntrinsic(func)
-    _lazy_objects.append(made)
+    _NUMBA.lazy_objects.append(made)
     return made
 
 
@@ -124,12 +135,12 @@ def prange(*args):
 def start_numba() -> None:
     """Import numba, make every lazy kernel and intrinsic, and put them (and ``numba.prange``) in
     place of the lazy objects in stereocli's modules, before anything compiles."""
-    with _start_lock:  # threads (a Dask worker's) may need the JIT at once
-        if _numba_started[0]:
+    with _NUMBA.lock:
+        if _NUMBA.started:
             return
         import numba
 
-        for made in _lazy_objects:
+        for made in _NUMBA.lazy_objects:
             made._make(numba)
         for name, module in list(sys.modules.items()):
             if not name.startswith("stereocli.") or module is None:
@@ -140,9 +151,9 @@ def start_numba() -> None:
                     namespace[key] = value._made
                 elif value is prange and module is not sys.modules[__name__]:
                     namespace[key] = numba.prange
-        _lazy_objects.clear()
+        _NUMBA.lazy_objects.clear()
         globals()["prange"] = numba.prange  # for kernel modules imported from now on
-        _numba_started[0] = True  # last: other threads use the dispatchers only once all are in place
+        _NUMBA.started = True  # last: other threads use the dispatchers only once all are in place
     set_numba_threads(getattr(_numba_threads, "count", 0))
 
 
@@ -152,7 +163,7 @@ def set_numba_threads(threads: int, numba_threads: int | None = None) -> None:
     (numba keeps the count per thread). ``numba_threads``: numba's own count to set instead
     (what :func:`get_numba_threads` gave), to restore it."""
     _numba_threads.count = threads
-    if _numba_started[0]:
+    if _NUMBA.started:
         import numba
 
         count = numba_threads or threads or numba.config.NUMBA_NUM_THREADS
@@ -161,7 +172,7 @@ def set_numba_threads(threads: int, numba_threads: int | None = None) -> None:
 
 def get_numba_threads() -> int | None:
     """numba's thread count in the calling thread, None before numba has started."""
-    if not _numba_started[0]:
+    if not _NUMBA.started:
         return None
     import numba
 
@@ -169,7 +180,7 @@ def get_numba_threads() -> int | None:
 
 
 def numba_started() -> bool:
-    return _numba_started[0]
+    return _NUMBA.started
 
 
 def chunk_kernel(func):

@@ -25,8 +25,8 @@ from typing import Literal
 import cv2
 import numpy as np
 
-from ..matching.kernels import side_by_side
-from .points import grey_uint8
+from ..io.images import grey_uint8
+from ..runtime import side_by_side
 
 #: Largest distance (px) between a track's start and where tracking back from its end lands.
 ROUND_TRIP_PX = 0.1
