@@ -54,7 +54,9 @@ output_format = click.option("--format", "fmt", type=click.Choice(["text", "json
 config_files = click.option("-c", "--config", "config_files", multiple=True, metavar="FILE|PRESET",
                             help="YAML config file or bundled preset name (repeatable; later wins).")
 sets = click.option("-s", "--set", "sets", multiple=True, metavar="SECTION.KEY=VALUE",
-                    help="Override one config value (repeatable; beats --config).")
+                    help="Override one config value (repeatable; beats --config); listed stages: "
+                         "refinement+=STAGE appends, refinement.lr_check+=STAGE inserts before lr_check, "
+                         "refinement-=median removes, refinement.median=STAGE replaces.")
 
 
 def batch(func):

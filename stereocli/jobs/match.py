@@ -221,10 +221,14 @@ def check_confidence(config: dict) -> None:
     result = _tiny_match(validated, channels=3, dtype=np.dtype(np.uint8), min_disp=0, ndisp=16, masks=False,
                          want_confidence=True)
     if result.confidence is None:
+        from ..match.config import first_map_stage
+
         names = ", ".join(c["name"] for c in config.get("refinement", [])) or "none"
+        # Confidence reads the cost volume, so it goes before the first stage that only edits the map.
+        target = first_map_stage(validated.refinement)
+        where = "refinement+=" if target == str(len(validated.refinement)) else f"refinement.{target}+="
         raise ConfigError(f"--confidence: the configured pipeline produces no confidence map (refinement: {names}); "
-                          "add a refinement stage that does, e.g. --set 'refinement=[..., {name: confidence}]' "
-                          "in a config file")
+                          f"add a refinement stage that does, e.g. --set {where}confidence")
 
 
 def _read_views(item: WorkItem, gray: bool = False) -> tuple[np.ndarray, np.ndarray]:

@@ -105,13 +105,25 @@ def validate(config: dict, source: str = "<config>") -> PipelineConfig:
         if call.stage.traits.needs_cost and seen_map_stage:
             raise ConfigError(
                 f"{source}: refinement: {call.stage.name!r} reads the cost volume and must come before "
-                f"{seen_map_stage!r} (stages that only edit the disparity map run after the volume is dropped)"
+                f"{seen_map_stage!r} (stages that only edit the disparity map run after the volume is dropped); "
+                f"e.g. --set refinement.{first_map_stage(ref)}+={call.stage.name} inserts it before the first of them"
             )
         if not call.stage.traits.needs_cost:
             seen_map_stage = call.stage.name
     runtime_stage = Stage("runtime", "runtime", lambda *a: None, RuntimeParams, "", "")
     runtime = runtime_stage.make_params(config.get("runtime", {}), source=source, section="runtime")
     return PipelineConfig(pre, cost, agg, opt, ref, runtime)
+
+
+def first_map_stage(refinement: list[StageCall]) -> str:
+    """How ``--set`` addresses the first refinement that only edits the map (not ``needs_cost``):
+    its name, or its index when the name is listed twice; the list's length when there is none
+    (inserting there appends)."""
+    names = [c.stage.name for c in refinement]
+    for i, call in enumerate(refinement):
+        if not call.stage.traits.needs_cost:
+            return call.stage.name if names.count(call.stage.name) == 1 else str(i)
+    return str(len(refinement))
 
 
 def build_config(config_files: list[str] | tuple[str, ...] = (), sets: list[str] | tuple[str, ...] = ()) -> PipelineConfig:
