@@ -62,13 +62,15 @@ def resolve_range(pair: StereoInput, ndisp: int | str | None, min_disp: int | No
     """
     info: dict = {}
     if pair.calib:
-        from ..io.middlebury import read_calib_txt
+        from ..io.middlebury import calib_range, read_calib_txt
 
         calib = read_calib_txt(pair.calib)
         info = {"vmin": calib.vmin, "vmax": calib.vmax}
         if ndisp is None and calib.ndisp > 0:
             info["range_source"] = "calib.txt"
-            return int(min_disp or 0), int(calib.ndisp), info
+            if min_disp is not None:
+                return int(min_disp), int(calib.ndisp), info
+            return (*calib_range(calib, pair.calib), info)
         if ndisp is None and min_disp is None:
             info["note"] = f"{pair.calib}: ndisp={calib.ndisp} gives no range; the range is estimated from the images"
     if ndisp is None or ndisp == AUTO:
@@ -313,6 +315,8 @@ def match_item(item: WorkItem) -> dict:
         "memory_estimate_gb": round(result.memory_estimate_gb, 3),
         "mde_per_s": round(w * h * ndisp / max(seconds, 1e-9) / 1e6, 2),
         "valid_fraction": round(float(finite.mean()), 6),
+        # Pixels no right-view pixel shows over the range: invalid, or filled with their row's background.
+        "unmatched": result.unmatched,
         **survey,
     }
     if result.notes:

@@ -48,6 +48,7 @@ from .kernels.images import luma
 from .kernels.winners import wta_right
 from .refine import clear_invalid_left
 from .state import MatchState, Wants
+from .visibility import find_unmatched, keep_in_range
 
 #: Use fused cost + WTA kernels when the pipeline allows it (False forces the volume path).
 FUSED = True
@@ -71,6 +72,9 @@ class MatchResult:
     strips: int = 1
     memory_estimate_gb: float = 0.0
     notes: dict = field(default_factory=dict)  # stage name -> facts a stage found (e.g. row_align's fit)
+    #: pixels without a match (:meth:`~stereocli.match.visibility.Unmatched.counts`): invalid, or
+    #: filled with their row's background, confidence 0
+    unmatched: dict = field(default_factory=dict)
 
 
 def volume_copies(config: PipelineConfig) -> float:
@@ -343,6 +347,15 @@ def finish(prepared: PreparedPair, results: list[StripResult], config: PipelineC
 
     map_stages = [c for c in _refinements(config, prepared.keep_invalid) if not c.stage.traits.needs_cost]
     state.cost = None
+    t0 = time.perf_counter()
+    # Pixels without a match leave the map before any map stage reads it (visibility.py).
+    disparity = keep_in_range(disparity, state.min_disp, state.ndisp)
+    unmatched = find_unmatched(shape, state.min_disp, state.ndisp, state.left_valid, state.right_valid)
+    disparity = np.where(unmatched.outside_views, np.float32(np.inf), disparity)
+    # Pixels invalid at some point from here on, filled or not: their confidence is 0 (a map
+    # stage may make the confidence map too).
+    holes = ~np.isfinite(disparity)
+    timings["unmatched"] = time.perf_counter() - t0
     state.disparity, state.disparity_right, state.confidence = disparity, disparity_right, confidence
     state.integer_disparity, state.integer_disparity_right = integer.values()
     for call in map_stages:
@@ -354,8 +367,16 @@ def finish(prepared: PreparedPair, results: list[StripResult], config: PipelineC
             timings[key] = timings.get(key, 0.0) + time.perf_counter() - t0
         _timed(timings, f"refinement.{call.stage.name}", call.stage.func, state, call.params)
         state.mirrored_disparity = None
+        state.disparity = keep_in_range(state.disparity, state.min_disp, state.ndisp)
+        holes |= ~np.isfinite(state.disparity)
+    filled = any(c.stage.traits.fills_holes for c in map_stages)
+    state.disparity = _settle_outside_views(state.disparity, unmatched.outside_views, filled)
     clear_invalid_left(state)
+    if state.confidence is not None:
+        state.confidence = np.where(holes | unmatched.outside_views | ~np.isfinite(state.disparity), np.float32(0),
+                                    state.confidence).astype(np.float32)
     if state.disparity_right is not None:
+        state.disparity_right = keep_in_range(state.disparity_right, state.min_disp, state.ndisp)
         # The right map was matched on ``state.right``, whose rows a preprocess stage may have moved.
         state.disparity_right = _right_map_rows(state, state.disparity_right, to_input=True)
     _current_config[0] = None
@@ -369,7 +390,23 @@ def finish(prepared: PreparedPair, results: list[StripResult], config: PipelineC
         memory_estimate_gb=estimate_memory(config, min(shape[0], strips[0][1] + 2 * overlap), shape[1],
                                            state.ndisp) / GIB,
         notes=dict(state.notes),
+        unmatched=unmatched.counts(),
     )
+
+
+def _settle_outside_views(disparity: np.ndarray, outside: np.ndarray, filled: bool) -> np.ndarray:
+    """``disparity`` with the pixels ``outside`` the views (:class:`~.visibility.Unmatched`)
+    invalid, or, when a stage ``filled`` the map's holes, holding the nearest visible background
+    of their row (the smaller of the nearest valid disparities on either side, as ``fill``
+    gives): whatever the stages after the fill did to them."""
+    if not outside.any():
+        return disparity
+    cleared = np.where(outside, np.float32(np.inf), disparity)
+    if not filled:
+        return cleared
+    from .kernels.maps import fill_background
+
+    return np.where(outside, fill_background(cleared), disparity).astype(np.float32)
 
 
 def _right_map_rows(state: MatchState, right_map: np.ndarray, *, to_input: bool) -> np.ndarray:
