@@ -90,7 +90,7 @@ def rectify_item(item: WorkItem) -> dict:
     from ..io.calib import to_middlebury
     from ..io.exif import orientation_note
     from ..io.images import read_image, write_image
-    from ..io.middlebury import write_calib_txt
+    from ..io.middlebury import MIN_DISP_KEY, write_calib_txt
     from ..rectify.maps import check_image, rectified_calibration, rectify_images
 
     opts = item.options
@@ -108,6 +108,10 @@ def rectify_item(item: WorkItem) -> dict:
     mb = to_middlebury(rectified_calibration(calib, rect=rect), ndisp=ndisp)
     if span.get("evidence"):
         mb.vmin, mb.vmax = float(max(0, span["min_disp"])), float(span["max_disp"])
+        if span["min_disp"] > 0:
+            # The estimated range starts above 0: match searches [mindisp, ndisp), so nothing
+            # farther than the pair shows is searched (infinity is at 0 after rectification).
+            mb.extra[MIN_DISP_KEY] = str(int(span["min_disp"]))
     out = item.outputs
     write_image(out["im0"], r0)
     write_image(out["im1"], r1)
