@@ -19,6 +19,10 @@ class Finite(click.FloatRange):
             self.fail(f"{excerpt(value, quote=True)} is not a finite number", param, ctx)
         return number
 
+    def _describe_range(self) -> str:
+        # --help shows the bounds; without any, nothing (click would print "x<=None").
+        return "" if self.min is None and self.max is None else super()._describe_range()
+
 class _NdispType(click.ParamType):
     """A number of disparities in [1, 100000], or ``auto`` (estimate the range from the images)."""
 

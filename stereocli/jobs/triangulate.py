@@ -24,16 +24,36 @@ def find_disparity(folder: Path) -> Path | None:
     return others[0] if others else None
 
 
-def _match_inputs(folder: Path) -> dict:
-    """The inputs ``stereocli match`` recorded in ``params.json`` beside its outputs (calib, left)."""
+def _match_record(folder: Path) -> dict:
+    """``params.json`` that ``stereocli match`` wrote beside its outputs ({} if none or unreadable)."""
     params = folder / "params.json"
     if not params.is_file():
         return {}
     try:
-        recorded = json.loads(params.read_text()).get("inputs", {})
+        recorded = json.loads(params.read_text())
     except (OSError, ValueError):
         return {}
+    return recorded if isinstance(recorded, dict) else {}
+
+
+def _match_inputs(folder: Path) -> dict:
+    """The inputs ``stereocli match`` recorded in ``params.json`` beside its outputs (calib, left,
+    valid masks)."""
+    recorded = _match_record(folder).get("inputs", {})
+    if not isinstance(recorded, dict):
+        return {}
     return {k: v for k, v in recorded.items() if isinstance(v, str) and Path(v).is_file()}
+
+
+def _searched_range(folder: Path) -> dict | None:
+    """``{"min_disp", "ndisp", "source"}``: the range ``stereocli match`` searched, from its
+    ``params.json`` in ``folder``; None without one."""
+    recorded = _match_record(folder)
+    span = recorded.get("range") if isinstance(recorded.get("range"), dict) else recorded
+    low, ndisp = span.get("min_disp"), span.get("ndisp")
+    if isinstance(low, int) and isinstance(ndisp, int) and not isinstance(low, bool) and ndisp > 0:
+        return {"min_disp": low, "ndisp": ndisp, "source": str(folder / "params.json")}
+    return None
 
 
 def _find_inputs(inputs: list[str] | tuple[str, ...]) -> tuple[list[tuple[str, Path]], list[str]]:
@@ -101,9 +121,17 @@ def plan_items(inputs: list[str] | tuple[str, ...], output: str, *, calib: str |
         img = image or beside("im0.png") or recorded.get("left")
         if img:
             inputs_["image"] = str(img)
-        conf = confidence or (beside("conf0.pfm") if not single else None)
+        conf = confidence or beside("conf0.pfm")
         if conf:
             inputs_["confidence"] = str(conf)
+        # What the match saw: the valid masks (unmatched pixels) and the range it searched.
+        for key, fname in (("left_valid", "valid0.png"), ("right_valid", "valid1.png")):
+            mask = recorded.get(key) or beside(fname)
+            if mask:
+                inputs_[key] = str(mask)
+        searched = _searched_range(disp.parent)
+        if searched is not None:
+            inputs_["params"] = searched["source"]
         if single:
             stem = out.with_suffix("")
             outputs = {"cloud": str(out)}
@@ -138,6 +166,34 @@ def _refuse_uncalibrated(path: str) -> None:
                             "calibration: calibrate the rig and rectify with --calib")
 
 
+def _item_range(item: WorkItem) -> dict | None:
+    """The range the match searched: from ``params.json`` beside the disparity, else from the
+    calib.txt (``[0, ndisp)``, or ``[mindisp, ndisp)`` as ``rectify`` writes it); None if neither
+    says."""
+    if "params" in item.inputs:
+        searched = _searched_range(Path(item.inputs["params"]).parent)
+        if searched is not None:
+            return searched
+    path = item.inputs["calibration"]
+    if Path(path).suffix.lower() == ".txt":
+        from ..io.middlebury import calib_range, read_calib_txt
+
+        span = calib_range(read_calib_txt(path), path)
+        if span is not None:
+            return {"min_disp": span[0], "ndisp": span[1], "source": str(path)}
+    return None
+
+
+def _read_mask(path: str, shape: tuple[int, int]) -> np.ndarray:
+    from ..io.images import read_image
+
+    mask = read_image(path, gray=True)
+    if mask.shape[:2] != shape:
+        raise DataError(f"{path}: valid mask is {mask.shape[1]}x{mask.shape[0]} but the disparity is "
+                        f"{shape[1]}x{shape[0]}")
+    return mask > 127
+
+
 def triangulate_item(item: WorkItem) -> dict:
     """Read disparity, calibration, image; write cloud, depth and summary; returns the summary."""
     from ..io.atomic import atomic_path, write_text
@@ -166,20 +222,33 @@ def triangulate_item(item: WorkItem) -> dict:
     if "confidence" in item.inputs:
         conf = read_disparity(item.inputs["confidence"], kind="confidence")
         conf = np.where(np.isfinite(conf), conf, 0).astype(np.float32)
+        if conf.shape != disp.shape:
+            raise DataError(f"{item.inputs['confidence']}: confidence is {conf.shape[1]}x{conf.shape[0]} but the "
+                            f"disparity {item.inputs['disparity']} is {disp.shape[1]}x{disp.shape[0]}")
+    if o.get("min_confidence") is not None and conf is None:
+        raise DataError(f"{item.inputs['disparity']}: --min-confidence needs a confidence map (--confidence FILE, "
+                        "or conf0.pfm beside the disparity: match --confidence writes it)")
     if not np.isfinite(disp).any():
         raise DataError(f"{item.inputs['disparity']}: every disparity is invalid (+inf); nothing to triangulate")
+    searched = _item_range(item)
+    masks = {key: _read_mask(item.inputs[key], disp.shape) for key in ("left_valid", "right_valid")
+             if key in item.inputs}
     depth, cloud = triangulate(disp, geom, image=image, confidence=conf, normals=o.get("normals", False),
-                               stride=o.get("stride", 1), min_depth=o.get("min_depth"), max_depth=o.get("max_depth"))
+                               stride=o.get("stride", 1), min_depth=o.get("min_depth"), max_depth=o.get("max_depth"),
+                               disparity_range=(searched["min_disp"], searched["ndisp"]) if searched else None,
+                               min_confidence=o.get("min_confidence"), supported=not o.get("keep_unsupported"),
+                               **masks)
     if cloud.points.shape[0] == 0:
         depth_all = depth_from_disparity(disp, geom)
         if not np.isfinite(depth_all).any():
             raise DataError(f"{item.inputs['disparity']}: no valid depth: every disparity d has d + doffs <= 0 "
                             f"(doffs {geom.doffs:g} px)")
-        if o.get("min_depth") is None and o.get("max_depth") is None:
+        if not any(n for reason, n in cloud.dropped.items() if reason != "invalid"):
             raise DataError(f"{item.inputs['disparity']}: no valid pixel on the --stride {o.get('stride', 1)} grid")
+        dropped = ", ".join(f"{n} {reason}" for reason, n in cloud.dropped.items() if n)
         span = summarize(depth_all, cloud, geom)
-        raise DataError(f"{item.inputs['disparity']}: no point left after --min-depth/--max-depth "
-                        f"(valid depths span {span.get('depth_min')}..{span.get('depth_max')} {geom.units})")
+        raise DataError(f"{item.inputs['disparity']}: no point left (pixels dropped: {dropped}; valid depths span "
+                        f"{span.get('depth_min')}..{span.get('depth_max')} {geom.units})")
     out = item.outputs
     comments = [f"stereocli triangulate: units {geom.units}; frame {FRAME}",
                 f"Z = f*B/(d + doffs), f {geom.f:.6g} px, B {geom.baseline:.6g} {geom.units}, doffs {geom.doffs:.6g} px, "
@@ -196,6 +265,7 @@ def triangulate_item(item: WorkItem) -> dict:
     if "depth_png16" in out:
         clipped = write_depth_png16_mm(out["depth_png16"], depth, geom.units)
     info = summarize(depth, cloud, geom)
+    info["range"] = searched
     if clipped:
         info["depth_png16_unrepresentable"] = clipped
     if "summary" in out:
