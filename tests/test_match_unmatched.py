@@ -124,3 +124,25 @@ def test_params_json_counts_unmatched_pixels(run_cli, tmp_path):
     assert r.code == 0, r.err
     params = json.loads((tmp_path / "out" / "planes" / "params.json").read_text())
     assert params["unmatched"] == {"pixels": 64 * 6}
+
+
+def test_calib_txt_mindisp_sets_the_searched_range(run_cli, tmp_path):
+    from conftest import two_scenes
+    from stereocli.errors import DataError
+    from stereocli.io.middlebury import calib_range, read_calib_txt
+
+    scene = two_scenes(tmp_path / "scenes", 96, 64) / "planes"
+    calib = scene / "calib.txt"
+    assert "mindisp" not in calib.read_text()
+    ndisp = read_calib_txt(calib).ndisp
+    assert calib_range(read_calib_txt(calib), calib) == (0, ndisp)
+    calib.write_text(calib.read_text() + "mindisp=6\n")
+    assert calib_range(read_calib_txt(calib), calib) == (6, ndisp - 6)
+    r = run_cli("match", scene, "-o", tmp_path / "out")
+    assert r.code == 0, r.err
+    params = json.loads((tmp_path / "out" / "planes" / "params.json").read_text())
+    assert (params["min_disp"], params["ndisp"], params["range"]["source"]) == (6, ndisp - 6, "calib.txt")
+    assert params["unmatched"] == {"pixels": 64 * 6}
+    calib.write_text(calib.read_text().replace("mindisp=6", f"mindisp={ndisp}"))
+    with pytest.raises(DataError, match=f"mindisp={ndisp} leaves no disparity below ndisp={ndisp}"):
+        calib_range(read_calib_txt(calib), calib)
