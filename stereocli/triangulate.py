@@ -29,9 +29,12 @@ depth map, no point in the cloud, never a sentinel point), for the first of thes
   (when the range is known);
 * ``unmatched``: no right-view pixel shows it: ``x − d`` rounds to a column outside the right
   image or outside the right valid mask, or the pixel is outside the left valid mask;
-* ``at_infinity``: ``d + doffs < 1`` px (:data:`MIN_DEPTH_DISPARITY`). A 1 px error in such a
-  disparity reaches ``d + doffs ≤ 0``, infinite depth: the interval of depths the match allows
-  is unbounded, so the depth means nothing;
+* ``at_infinity``: ``d + doffs < 2`` px (:data:`MIN_DEPTH_DISPARITY`). Depth goes as
+  ``1 / (d + doffs)``: there, a disparity 1 px too large (the bad-pixel threshold of every
+  benchmark) has at least doubled the depth, and below 1 px the depth allowed is unbounded.
+  Such points carry no depth worth keeping; they are what matches of patterns fixed to both
+  sensors (compression blocks, sensor noise, identical in two barely warped views) and
+  ambiguous textureless regions put near infinity;
 * ``low_confidence``: its confidence is below ``min_confidence`` (when given);
 * ``depth_limits``: its depth lies outside ``[min_depth, max_depth]``.
 
@@ -52,9 +55,9 @@ from .io.calib import UNIT_SCALE, StereoCalibration
 
 FRAME = "rectified left camera: x right, y down, z forward"
 
-#: Points need ``d + doffs`` at least this (px): below it a 1 px disparity error reaches infinite
-#: depth (module docstring).
-MIN_DEPTH_DISPARITY = 1.0
+#: Points need ``d + doffs`` at least this (px): below it a 1 px disparity error more than doubles
+#: the depth (module docstring).
+MIN_DEPTH_DISPARITY = 2.0
 #: How far a disparity may lie outside the searched range and still count (px): a sub-pixel fit
 #: at the range's last hypothesis (as :data:`stereocli.match.visibility.RANGE_SLACK`).
 RANGE_SLACK = 1.0

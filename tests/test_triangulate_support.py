@@ -20,9 +20,9 @@ def test_each_reason_counts_exactly():
     d = np.array([
         # x: 0    1     2     3     4     5     6     7     8     9
         [INF, 2.0, 3.0, 20.0, 1.5, 0.4, 5.0, 5.0, 5.0, 5.0],  # invalid, unmatched (x − d < −0.5) ×2,
-        #                                                        outside the range, beyond 100, at infinity
+        #                                                        outside the range, at infinity ×2
         [3.0, 0.5, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0],   # x 0 lands left of the image, the rest on column 1
-        [0.0, 0.9, 2.5, 3.0, 3.0, 3.0, 3.0, 3.0, 3.0, 3.0],   # at infinity ×2, then x 8 masked, x 9 not confident
+        [0.0, 0.9, 2.5, 3.0, 3.0, 3.0, 3.0, 3.0, 3.0, 3.0],   # at infinity ×2, beyond 70, x 8 masked, x 9 not confident
     ], np.float32)
     confidence = np.ones(d.shape, np.float32)
     confidence[2, 9] = 0.0
@@ -31,16 +31,17 @@ def test_each_reason_counts_exactly():
     left_valid = np.ones(d.shape, bool)
     left_valid[2, 8] = False
     depth, cloud = triangulate(d, GEOM, disparity_range=(0, 16), right_valid=right_valid, left_valid=left_valid,
-                               confidence=confidence, min_confidence=0.5, max_depth=100.0)
+                               confidence=confidence, min_confidence=0.5, max_depth=70.0)
     assert list(cloud.dropped) == list(DROP_REASONS)
-    assert cloud.dropped == {"invalid": 1, "outside_range": 1, "unmatched": 2 + 10 + 1, "at_infinity": 1 + 2,
+    assert cloud.dropped == {"invalid": 1, "outside_range": 1, "unmatched": 2 + 10 + 1, "at_infinity": 2 + 2,
                              "low_confidence": 1, "depth_limits": 1}
     kept = np.isfinite(depth)
     assert kept.astype(int).tolist() == [[0, 0, 0, 0, 0, 0, 1, 1, 1, 1],
                                          [0, 0, 0, 0, 0, 0, 0, 0, 0, 0],
-                                         [0, 0, 1, 1, 1, 1, 1, 1, 0, 0]]
-    assert cloud.points.shape == (10, 3) and sum(cloud.dropped.values()) == d.size - 10
-    np.testing.assert_allclose(depth[2, 2:8], [80.0] + [200.0 / 3] * 5, rtol=1e-6)
+                                         [0, 0, 0, 1, 1, 1, 1, 1, 0, 0]]
+    assert cloud.points.shape == (9, 3) and sum(cloud.dropped.values()) == d.size - 9
+    np.testing.assert_allclose(depth[2, 3:8], 200.0 / 3, rtol=1e-6)
+    np.testing.assert_allclose(depth[0, 6:], 40.0, rtol=1e-6)
 
 
 def test_without_support_only_invalid_and_no_depth_are_dropped():

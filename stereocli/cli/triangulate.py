@@ -34,7 +34,7 @@ from ..errors import ConfigError as usage_error  # one-line message, exit 2
               help="Drop points farther than this (depth units).")
 @click.option("--keep-unsupported", is_flag=True,
               help="Also keep points the match does not support: disparities outside the range it searched, "
-                   "pixels no right-view pixel shows, and d + doffs < 1 px (near infinity).")
+                   "pixels no right-view pixel shows, and d + doffs < 2 px (near infinity).")
 @click.option("--stride", type=click.IntRange(1, 1000), default=1, show_default=True,
               help="Keep every STRIDE-th pixel in x and y (point cloud decimation).")
 @click.option("--ascii", "ascii_ply", is_flag=True, help="ASCII PLY instead of binary little endian.")
@@ -58,7 +58,7 @@ def triangulate_cmd(ctx, inputs, output, calib_path, image, scenes, confidence, 
     frame (x right, y down, z forward), in the calibration's unit (Middlebury calib.txt: mm).
     Only what the match supports becomes a point: invalid disparities, disparities outside the
     range the match searched (params.json beside the disparity, else calib.txt), pixels no
-    right-view pixel shows (valid masks, the image's edge) and d + doffs < 1 px are dropped, and
+    right-view pixel shows (valid masks, the image's edge) and d + doffs < 2 px are dropped, and
     so are depths outside --min-depth/--max-depth; depth maps hold +inf there. --summary and
     run.json count the dropped pixels by reason.
 
