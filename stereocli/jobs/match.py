@@ -223,14 +223,19 @@ def check_confidence(config: dict) -> None:
     result = _tiny_match(validated, channels=3, dtype=np.dtype(np.uint8), min_disp=0, ndisp=16, masks=False,
                          want_confidence=True)
     if result.confidence is None:
-        from ..match.config import first_map_stage
-
         names = ", ".join(c["name"] for c in config.get("refinement", [])) or "none"
-        # Confidence reads the cost volume, so it goes before the first stage that only edits the map.
-        target = first_map_stage(validated.refinement)
-        where = "refinement+=" if target == str(len(validated.refinement)) else f"refinement.{target}+="
         raise ConfigError(f"--confidence: the configured pipeline produces no confidence map (refinement: {names}); "
-                          f"add a refinement stage that does, e.g. --set {where}confidence")
+                          f"add a refinement stage that does, e.g. {_add_confidence(validated)}")
+
+
+def _add_confidence(config) -> str:
+    """The ``--set`` that adds a ``confidence`` stage to the validated ``config``: before the
+    first stage that only edits the map (it reads the cost volume)."""
+    from ..match.config import first_map_stage
+
+    target = first_map_stage(config.refinement)
+    where = "refinement+=" if target == str(len(config.refinement)) else f"refinement.{target}+="
+    return f"--set {where}confidence"
 
 
 def _read_views(item: WorkItem, gray: bool = False) -> tuple[np.ndarray, np.ndarray]:
@@ -300,7 +305,7 @@ def match_item(item: WorkItem) -> dict:
         conf = result.confidence
         if conf is None:
             raise ConfigError("--confidence: the configured pipeline produces no confidence map "
-                              "(add a refinement stage that does, e.g. {name: confidence})")
+                              f"(add a refinement stage that does, e.g. {_add_confidence(config)})")
         write_pfm(out["confidence"], conf)
     if "right" in out:
         write_pfm(out["right"], result.disparity_right)
