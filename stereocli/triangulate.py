@@ -193,11 +193,14 @@ def supported_pixels(disparity: np.ndarray, geom: RectifiedGeometry, *,
         low, ndisp = disparity_range
         drop("outside_range", (value < low - RANGE_SLACK) | (value > low + ndisp - 1 + RANGE_SLACK))
     if supported:
-        column = np.floor(np.arange(w)[None, :] - value + 0.5)  # the right column the match lands on
-        unseen = (column < 0) | (column > w - 1)
-        if right_valid is not None:
-            rows = np.broadcast_to(np.arange(h)[:, None], (h, w))
-            unseen |= ~right_valid[rows, np.clip(column, 0, w - 1).astype(np.intp)]
+        unseen = np.zeros((h, w), bool)
+        for y0 in range(0, h, 256):  # row strips keep the temporaries of a large map small
+            rows = slice(y0, min(h, y0 + 256))
+            column = np.floor(np.arange(w)[None, :] - value[rows] + 0.5)  # the right column the match lands on
+            unseen[rows] = (column < 0) | (column > w - 1)
+            if right_valid is not None:
+                inside = np.clip(column, 0, w - 1).astype(np.intp)
+                unseen[rows] |= ~np.take_along_axis(right_valid[rows], inside, axis=1)
         if left_valid is not None:
             unseen |= ~left_valid
         drop("unmatched", unseen)
