@@ -384,9 +384,14 @@ def match(
     right_valid = _as_mask(right_valid, "right", shape, name)
     cfg = match_config(preset, config, set, threads)
     if confidence and not cfg.produces_confidence():
+        from .matching.config import confidence_hint
+
+        hint = confidence_hint(cfg)
+        key = hint.removeprefix("--set ").split("=", 1)[0]
         names = ", ".join(c.stage.name for c in cfg.refinement) or "none"
         raise ConfigError(_named(name, f"confidence: the configured pipeline produces no confidence map (refinement: "
-                                       f"{names}); add a refinement stage that does, e.g. {{name: confidence}}"))
+                                       f"{names}); add a refinement stage that does, e.g. set={{{key!r}: 'confidence'}} "
+                                       f"({hint} on the command line)"))
     lo, nd, source = _given_range(ndisp, min_disp, calib, name)
     with threads_for_call(cfg.runtime.threads):
         # With the range known, a config whose row_align measures the rows leaves the alignment
@@ -439,6 +444,8 @@ class TriangulationResult:
     normals : (N, 3) float32 unit normals with ``normals=True``, else None.
     confidence : (N,) float32 confidence of each point with a ``confidence`` map, else None.
     geometry : the focal length, principal point, baseline and ``doffs`` used.
+    dropped : pixels left out of the cloud, by reason (``invalid``, ``outside_range``,
+        ``unmatched``, ``at_infinity``, ``low_confidence``, ``depth_limits``).
     """
 
     depth: np.ndarray
@@ -449,6 +456,7 @@ class TriangulationResult:
     colors: np.ndarray | None = None
     normals: np.ndarray | None = None
     confidence: np.ndarray | None = None
+    dropped: dict[str, int] = field(default_factory=dict)
 
     @property
     def units(self) -> str:
@@ -460,7 +468,8 @@ class TriangulationResult:
         ``--summary`` JSON of ``stereocli triangulate``."""
         from .triangulation import PointCloud, summarize
 
-        cloud = PointCloud(self.points, self.rows, self.cols, self.colors, self.normals, self.confidence)
+        cloud = PointCloud(self.points, self.rows, self.cols, self.colors, self.normals, self.confidence,
+                           dropped=dict(self.dropped))
         return summarize(self.depth, cloud, self.geometry)
 
     def __repr__(self) -> str:
@@ -519,6 +528,11 @@ def triangulate(
     stride: int = 1,
     normals: bool = False,
     scale: float | None = None,
+    disparity_range: tuple[int, int] | None = None,
+    left_valid: np.ndarray | PathLike | None = None,
+    right_valid: np.ndarray | PathLike | None = None,
+    min_confidence: float | None = None,
+    supported: bool = True,
 ) -> TriangulationResult:
     """Turn a disparity map into a depth map and a coloured point cloud (``stereocli triangulate``).
 
@@ -550,6 +564,17 @@ def triangulate(
         Also compute unit normals from neighbouring depths.
     scale : float, optional
         ``d = value / scale`` for an integer PNG disparity file (16-bit default 256).
+    disparity_range : (int, int), optional
+        ``(min_disp, ndisp)``: the range the match searched (``params.json``'s ``range``). Points
+        whose disparity lies outside it (beyond the sub-pixel slack of 1 px) are dropped.
+    left_valid, right_valid : numpy.ndarray or path, optional
+        ``(H, W)`` bool masks (or ``valid0.png``/``valid1.png``) of the rectified views: pixels
+        outside the left mask, or whose match falls outside the right one, are dropped.
+    min_confidence : float, optional
+        Drop points whose confidence is below this (needs ``confidence``).
+    supported : bool, default True
+        Drop what the match does not support (outside the range, unseen, ``d + doffs < 2`` px);
+        False keeps those points (``triangulate --keep-unsupported``).
 
     Returns
     -------
@@ -618,22 +643,52 @@ def triangulate(
             if np.isnan(conf).any():
                 raise DataError("confidence contains NaN")
         conf = np.where(np.isfinite(conf), conf, 0).astype(np.float32)
+        if conf.shape != disp.shape:
+            raise DataError(f"{_label(confidence, 'confidence')}: confidence is {conf.shape[1]}x{conf.shape[0]} but "
+                            f"the disparity {disparity_label} is {disp.shape[1]}x{disp.shape[0]}")
+    if min_confidence is not None and conf is None:
+        raise DataError(f"{disparity_label}: --min-confidence needs a confidence map (--confidence FILE, "
+                        "or conf0.pfm beside the disparity: match --confidence writes it)")
     if not np.isfinite(disp).any():
         raise DataError(f"{disparity_label}: every disparity is invalid (+inf); nothing to triangulate")
+    masks = {key: _valid_mask(value, disp.shape) for key, value in (("left_valid", left_valid),
+                                                                     ("right_valid", right_valid))
+             if value is not None}
     depth, cloud = compute(disp, geom, image=colours, confidence=conf, normals=normals, stride=stride,
-                           min_depth=min_depth, max_depth=max_depth)
+                           min_depth=min_depth, max_depth=max_depth, disparity_range=disparity_range,
+                           min_confidence=min_confidence, supported=supported, **masks)
     if cloud.points.shape[0] == 0:
         depth_all = depth_from_disparity(disp, geom)
         if not np.isfinite(depth_all).any():
             raise DataError(f"{disparity_label}: no valid depth: every disparity d has d + doffs <= 0 "
                             f"(doffs {geom.doffs:g} px)")
-        if min_depth is None and max_depth is None:
+        if not any(n for reason, n in cloud.dropped.items() if reason != "invalid"):
             raise DataError(f"{disparity_label}: no valid pixel on the --stride {stride} grid")
+        dropped = ", ".join(f"{n} {reason}" for reason, n in cloud.dropped.items() if n)
         span = summarize(depth_all, cloud, geom)
-        raise DataError(f"{disparity_label}: no point left after --min-depth/--max-depth "
-                        f"(valid depths span {span.get('depth_min')}..{span.get('depth_max')} {geom.units})")
+        raise DataError(f"{disparity_label}: no point left (pixels dropped: {dropped}; valid depths span "
+                        f"{span.get('depth_min')}..{span.get('depth_max')} {geom.units})")
     return TriangulationResult(depth=depth, points=cloud.points, rows=cloud.rows, cols=cloud.cols, geometry=geom,
-                               colors=cloud.colors, normals=cloud.normals, confidence=cloud.confidence)
+                               colors=cloud.colors, normals=cloud.normals, confidence=cloud.confidence,
+                               dropped=dict(cloud.dropped))
+
+
+def _label(value: Any, default: str) -> str:
+    """How an error names an argument: its path, or ``default`` for an array."""
+    return str(value) if isinstance(value, (str, os.PathLike)) else default
+
+
+def _valid_mask(value: np.ndarray | PathLike, shape: tuple[int, ...]) -> np.ndarray:
+    """A valid mask as (H, W) bool: an array as it is (nonzero valid), a file read as
+    ``valid0.png`` holds it (above 127 valid)."""
+    if isinstance(value, (str, os.PathLike)):
+        mask = read_image(value, gray=True) > 127
+    else:
+        mask = np.asarray(value).astype(bool)
+    if mask.shape[:2] != shape:
+        raise DataError(f"{_label(value, 'valid mask')}: valid mask is {mask.shape[1]}x{mask.shape[0]} but the "
+                        f"disparity is {shape[1]}x{shape[0]}")
+    return mask
 
 
 # --------------------------------------------------------------------------- rectify
@@ -810,6 +865,12 @@ def rectify(
     mb = to_middlebury(rectified, ndisp=ndisp)
     if span.get("evidence"):
         mb.vmin, mb.vmax = float(max(0, span["min_disp"])), float(span["max_disp"])
+        if span["min_disp"] > 0:
+            from .io.middlebury import MIN_DISP_KEY
+
+            # The estimated range starts above 0: match searches [mindisp, ndisp), so nothing
+            # farther than the pair shows is searched (infinity is at 0 after rectification).
+            mb.extra[MIN_DISP_KEY] = str(int(span["min_disp"]))
     return RectifyResult(r0, r1, maps.valid1 > 0, maps.valid2 > 0, mb, ndisp, span, rect, rectified)
 
 

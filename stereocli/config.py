@@ -12,7 +12,10 @@ A config has one section per pipeline stage plus ``runtime``::
 Precedence: the ``default`` preset < ``--config FILE`` < ``--set section.key=value``. When a
 higher layer names a different stage for a section, the lower layer's parameters for that
 section are dropped (they belonged to the other stage). Lists (``refinement``) are replaced
-whole; ``--set refinement.lr_check.max_diff=2`` edits the listed stage of that name.
+whole; ``--set refinement.lr_check.max_diff=2`` edits the listed stage of that name,
+``--set refinement.lr_check+=confidence`` inserts a stage before it, ``--set refinement+=median``
+appends one, ``--set refinement-=median`` removes one and ``--set refinement.median=bilateral``
+replaces one (:func:`apply_set`).
 This module works on plain dicts; :mod:`stereocli.matching.config` resolves the stages and
 validates their parameters.
 """
@@ -257,71 +260,141 @@ def merge_layer(base: dict, layer: dict, source: str) -> dict:
     return out
 
 
-def parse_set(assignment: str) -> tuple[list[str], Any]:
-    """Split ``section.key=value`` into the key path and the YAML-parsed value."""
+#: The forms of ``--set`` (error messages quote them).
+SET_FORMS = ("section.key=value, section.<stage name or index>.key=value (listed stages), "
+             "section.<stage>=STAGE (replace), section+=STAGE (append), section.<stage>+=STAGE (insert before), "
+             "section-=<stage> (remove)")
+
+
+def parse_set(assignment: str) -> tuple[list[str], str, Any]:
+    """Split ``--set`` into its key path, operator (``=``, ``+=`` or ``-=``) and YAML-parsed value.
+
+    ``refinement.lr_check.max_diff=2`` → ``(["refinement", "lr_check", "max_diff"], "=", 2)``;
+    ``refinement+=confidence`` → ``(["refinement"], "+=", "confidence")``.
+    """
     if "=" not in assignment:
-        raise ConfigError(f"--set {excerpt(assignment)}: expected section.key=value")
+        raise ConfigError(f"--set {excerpt(assignment)}: expected section.key=value; forms: {SET_FORMS}")
     key, raw = assignment.split("=", 1)
+    key = key.strip()
+    op = "="
+    if key.endswith(("+", "-")):
+        op, key = key[-1] + "=", key[:-1]
     parts = [p for p in key.strip().split(".") if p]
-    if len(parts) < 2:
-        raise ConfigError(f"--set {excerpt(assignment)}: expected section.key=value (e.g. cost.window=[5,5])")
+    if not parts or (op == "=" and len(parts) < 2 and parts[0] not in STAGE_SECTIONS):
+        raise ConfigError(f"--set {excerpt(assignment)}: expected section.key=value (e.g. cost.window=[5,5]); "
+                          f"forms: {SET_FORMS}")
     if not raw.strip():
-        return parts, ""
+        return parts, op, ""
     try:
         check_yaml_limits(raw, f"--set {excerpt(key.strip())}")
         value = yaml.safe_load(raw)
     except yaml.YAMLError:
         value = raw
-    return parts, value
+    return parts, op, value
+
+
+def _stage_entry(value: Any, where: str) -> dict:
+    """A stage given on the command line: its name (``confidence``) or a mapping with a name."""
+    if isinstance(value, str) and value.strip():
+        return {"name": value.strip()}
+    if isinstance(value, dict) and "name" in value:
+        return dict(value)
+    raise ConfigError(f"{where}: expected a stage: its name (e.g. median) or {{name: median, size: 5}}")
+
+
+def _stage_index(stages_: list[dict], section: str, target: str, where: str, *, example: str,
+                 insert: bool = False) -> int:
+    """The index of the listed stage ``target`` (a name or an index) in ``stages_``; with
+    ``insert`` an index may also be ``len(stages_)`` (the end)."""
+    if str(target).isdigit():
+        idx = int(target)
+        if idx > len(stages_) or (idx == len(stages_) and not insert):
+            raise ConfigError(f"{where}: {section} has {len(stages_)} stages (indices 0 to {len(stages_) - 1})")
+        return idx
+    matches = [i for i, s in enumerate(stages_) if s.get("name") == target]
+    if not matches:
+        listed = [s.get("name") for s in stages_]
+        raise ConfigError(f"{where}: no stage {excerpt(target, quote=True)} in {section}" + _suggest(str(target), listed))
+    if len(matches) > 1:
+        # E.g. quality's two geodesic_vote stages (rows, columns): editing the first one
+        # silently would leave the other as it was.
+        at = ", ".join(str(i) for i in matches)
+        raise ConfigError(f"{where}: {section} has {len(matches)} {target!r} stages (at {at}); "
+                          f"address one by its index, e.g. {example.format(matches[0])}")
+    return matches[0]
 
 
 def apply_set(config: dict, assignment: str) -> dict:
-    """Apply one ``--set`` assignment; returns a new dict."""
-    parts, value = parse_set(assignment)
-    return set_value(config, parts, value, f"--set {excerpt(assignment)}")
+    """Apply one ``--set`` assignment; returns a new dict.
+
+    Forms (:data:`SET_FORMS`): ``section.key=value`` edits a stage or ``runtime``;
+    ``section=STAGE`` (a list of them for a listed section) replaces a section; in a listed
+    section (``preprocess``, ``aggregation``, ``refinement``) a stage is addressed by name or
+    index: ``refinement.median.size=5`` edits it, ``refinement.median=bilateral`` replaces it,
+    ``refinement+=STAGE`` appends, ``refinement.lr_check+=confidence`` inserts before it and
+    ``refinement-=median`` removes it. STAGE is a name or ``{name: ..., <params>}``.
+    """
+    parts, op, value = parse_set(assignment)
+    return set_value(config, parts, value, f"--set {excerpt(assignment)}", op=op)
 
 
-def split_key(key: str, where: str) -> list[str]:
-    """``"section.key"`` (or ``"section.stage.key"``) as its parts; :class:`ConfigError` naming
-    ``where`` when it has fewer than two."""
-    parts = [p for p in str(key).strip().split(".") if p]
-    if len(parts) < 2:
-        raise ConfigError(f"{where}: expected section.key (e.g. cost.window)")
-    return parts
+def split_key(key: str, where: str) -> tuple[list[str], str]:
+    """``"section.key"`` (``"section.stage.key"``, ``"refinement+"``: :data:`SET_FORMS` without
+    the value) as its parts and operator; :class:`ConfigError` naming ``where`` when it names
+    no key."""
+    key, op = str(key).strip(), "="
+    if key.endswith(("+", "-")):
+        op, key = key[-1] + "=", key[:-1]
+    parts = [p for p in key.split(".") if p]
+    if not parts or (op == "=" and len(parts) < 2 and parts[0] not in STAGE_SECTIONS):
+        raise ConfigError(f"{where}: expected section.key (e.g. cost.window); forms: {SET_FORMS}")
+    return parts, op
 
 
-def set_value(config: dict, parts: list[str], value: Any, where: str) -> dict:
+def set_value(config: dict, parts: list[str], value: Any, where: str, op: str = "=") -> dict:
     """Set the key ``parts`` (``["optimizer", "p2"]``, ``["refinement", "lr_check", "max_diff"]``)
-    to ``value``, as ``--set`` does with a parsed value; returns a new dict. Errors name ``where``."""
+    to ``value``, as ``--set`` does with a parsed value, or with ``op`` ``+=``/``-=`` add or
+    remove a listed stage (:func:`apply_set`); returns a new dict. Errors name ``where``."""
     section = parts[0]
     if section not in SECTIONS:
         raise ConfigError(f"{where}: unknown section {excerpt(section, quote=True)}"
                           + _suggest(section, list(SECTIONS)))
     out = copy.deepcopy(config)
+    if op != "=" and section not in LIST_SECTIONS:
+        raise ConfigError(f"{where}: {op} adds or removes a stage of a listed section "
+                          f"({', '.join(LIST_SECTIONS)}); set {section} with {section}.key=value")
+    if len(parts) == 1 and op == "=":
+        # The whole section, as a config file would give it.
+        if section in LIST_SECTIONS:
+            listed = value if isinstance(value, list) else ([] if value in ("", None) else [value])
+            value = [_stage_entry(v, where) for v in listed]
+        else:
+            value = _stage_entry(value, where)
+        return merge_layer(out, {section: value}, where)
     if section in LIST_SECTIONS:
         stages_ = out.setdefault(section, [])
+        if op == "+=":
+            added = [_stage_entry(v, where) for v in (value if isinstance(value, list) else [value])]
+            if len(parts) > 2:
+                raise ConfigError(f"{where}: insert with {section}+=STAGE or {section}.<stage name or index>+=STAGE")
+            at = len(stages_) if len(parts) == 1 else _stage_index(
+                stages_, section, parts[1], where, example=f"{section}.{{}}+={excerpt(added[0]['name'])}", insert=True)
+            stages_[at:at] = added
+            return out
+        if op == "-=":
+            if len(parts) != 1 or value in ("", None):
+                raise ConfigError(f"{where}: remove with {section}-=<stage name or index>, e.g. {section}-=0")
+            del stages_[_stage_index(stages_, section, str(value), where, example=f"{section}-={{}}")]
+            return out
+        if len(parts) == 2:
+            at = _stage_index(stages_, section, parts[1], where, example=f"{section}.{{}}={excerpt(value)}")
+            stages_[at] = _stage_entry(value, where)
+            return out
         if len(parts) != 3:
-            raise ConfigError(f"{where}: address a listed stage as {section}.<stage name or index>.<key>")
+            raise ConfigError(f"{where}: address a listed stage as {section}.<stage name or index>.<key>; "
+                              f"forms: {SET_FORMS}")
         target, key = parts[1], parts[2]
-        if target.isdigit():
-            idx = int(target)
-            if idx >= len(stages_):
-                raise ConfigError(f"{where}: {section} has {len(stages_)} stages")
-            entry = stages_[idx]
-        else:
-            matches = [i for i, s in enumerate(stages_) if s.get("name") == target]
-            if not matches:
-                listed = [s.get("name") for s in stages_]
-                raise ConfigError(
-                    f"{where}: no stage {excerpt(target, quote=True)} in {section}" + _suggest(target, listed)
-                )
-            if len(matches) > 1:
-                # E.g. quality's two geodesic_vote stages (rows, columns): editing the first one
-                # silently would leave the other as it was.
-                at = ", ".join(str(i) for i in matches)
-                raise ConfigError(f"{where}: {section} has {len(matches)} {target!r} stages (at {at}); "
-                                  f"address one by its index, e.g. {section}.{matches[0]}.{excerpt(key)}")
-            entry = stages_[matches[0]]
+        entry = stages_[_stage_index(stages_, section, target, where, example=f"{section}.{{}}.{excerpt(key)}")]
         entry[key] = value
         return out
     if len(parts) != 2:

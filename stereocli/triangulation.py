@@ -17,14 +17,35 @@ From OpenCV rectification: ``f = P1[0,0]``, ``cx = P1[0,2]``, ``cy = P1[1,2]``,
 ``B = −P2[0,3] / P2[0,0]``, ``doffs = P2[0,2] − P1[0,2]``. From Q (``[x y d 1] → [X Y Z W]``):
 ``cx = −Q[0,3]``, ``cy = −Q[1,3]``, ``f = Q[2,3]``, ``B = 1 / Q[3,2]``, ``doffs = Q[3,3] / Q[3,2]``.
 
-Invalid pixels (non-finite disparity, ``d + doffs ≤ 0``, outside ``[min_depth, max_depth]``)
-have depth +inf in depth maps and are dropped from point clouds (never a sentinel point).
+Which pixels become points
+--------------------------
+:func:`triangulate` writes only what the match supports. A pixel is dropped (depth +inf in the
+depth map, no point in the cloud, never a sentinel point), for the first of these reasons
+(:data:`DROP_REASONS`, counted in :attr:`PointCloud.dropped`):
+
+* ``invalid``: its disparity is not finite;
+* ``outside_range``: its disparity lies outside the range the match searched
+  ``[min_disp, min_disp + ndisp)`` by more than the 1 px a sub-pixel fit may add
+  (when the range is known);
+* ``unmatched``: no right-view pixel shows it: ``x − d`` rounds to a column outside the right
+  image or outside the right valid mask, or the pixel is outside the left valid mask;
+* ``at_infinity``: ``d + doffs < 2`` px (:data:`MIN_DEPTH_DISPARITY`). Depth goes as
+  ``1 / (d + doffs)``: there, a disparity 1 px too large (the bad-pixel threshold of every
+  benchmark) has at least doubled the depth, and below 1 px the depth allowed is unbounded.
+  Such points carry no depth worth keeping; they are what matches of patterns fixed to both
+  sensors (compression blocks, sensor noise, identical in two barely warped views) and
+  ambiguous textureless regions put near infinity;
+* ``low_confidence``: its confidence is below ``min_confidence`` (when given);
+* ``depth_limits``: its depth lies outside ``[min_depth, max_depth]``.
+
+``supported=False`` keeps every pixel with a finite disparity and ``d + doffs > 0`` (the depth
+limits still apply).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -37,6 +58,15 @@ __all__ = ["FRAME", "PointCloud", "RectifiedGeometry", "depth_from_disparity", "
            "write_depth", "write_depth_png16_mm"]
 
 FRAME = "rectified left camera: x right, y down, z forward"
+
+#: Points need ``d + doffs`` at least this (px): below it a 1 px disparity error more than doubles
+#: the depth (module docstring).
+MIN_DEPTH_DISPARITY = 2.0
+#: How far a disparity may lie outside the searched range and still count (px): a sub-pixel fit
+#: at the range's last hypothesis (as :data:`stereocli.matching.visibility.RANGE_SLACK`).
+RANGE_SLACK = 1.0
+#: Why a pixel gives no point, in the order the reasons are tested (each pixel counts once).
+DROP_REASONS = ("invalid", "outside_range", "unmatched", "at_infinity", "low_confidence", "depth_limits")
 
 
 @dataclass(frozen=True)
@@ -135,6 +165,53 @@ class PointCloud:
     colors: np.ndarray | None = None
     normals: np.ndarray | None = None
     confidence: np.ndarray | None = None
+    #: pixels of the whole map (before ``stride``) that give no point, by reason (:data:`DROP_REASONS`)
+    dropped: dict[str, int] = field(default_factory=dict)
+
+
+def supported_pixels(disparity: np.ndarray, geom: RectifiedGeometry, *,
+                     disparity_range: tuple[int, int] | None = None, left_valid: np.ndarray | None = None,
+                     right_valid: np.ndarray | None = None, confidence: np.ndarray | None = None,
+                     min_confidence: float | None = None, supported: bool = True) -> tuple[np.ndarray, dict[str, int]]:
+    """The pixels of ``disparity`` (H, W) float32 px that the match supports, (H, W) bool, and how
+    many of the others each reason of :data:`DROP_REASONS` drops (module docstring; all but
+    ``depth_limits``, which :func:`triangulate` counts).
+
+    ``disparity_range``: ``(min_disp, ndisp)`` the match searched, if known; masks (H, W) bool
+    or None; ``confidence`` (H, W) float32, read with ``min_confidence``. With ``supported``
+    False only the invalid pixels and those with ``d + doffs ≤ 0`` (no depth at all, counted as
+    ``at_infinity``) are dropped.
+    """
+    d = np.asarray(disparity, dtype=np.float32)
+    h, w = d.shape
+    keep = np.isfinite(d)
+    dropped = {"invalid": int(d.size - keep.sum())}
+
+    def drop(reason: str, bad: np.ndarray) -> None:
+        bad = bad & keep
+        dropped[reason] = int(bad.sum())
+        keep[bad] = False
+
+    value = np.where(keep, d, 0).astype(np.float64)
+    if supported and disparity_range is not None:
+        low, ndisp = disparity_range
+        drop("outside_range", (value < low - RANGE_SLACK) | (value > low + ndisp - 1 + RANGE_SLACK))
+    if supported:
+        unseen = np.zeros((h, w), bool)
+        for y0 in range(0, h, 256):  # row strips keep the temporaries of a large map small
+            rows = slice(y0, min(h, y0 + 256))
+            column = np.floor(np.arange(w)[None, :] - value[rows] + 0.5)  # the right column the match lands on
+            unseen[rows] = (column < 0) | (column > w - 1)
+            if right_valid is not None:
+                inside = np.clip(column, 0, w - 1).astype(np.intp)
+                unseen[rows] |= ~np.take_along_axis(right_valid[rows], inside, axis=1)
+        if left_valid is not None:
+            unseen |= ~left_valid
+        drop("unmatched", unseen)
+    drop("at_infinity", value + geom.doffs < (MIN_DEPTH_DISPARITY if supported else np.finfo(np.float64).tiny))
+    if min_confidence is not None and confidence is not None:
+        drop("low_confidence", ~(np.asarray(confidence) >= min_confidence))
+    return keep, {reason: dropped.get(reason, 0) for reason in DROP_REASONS[:-1]}
 
 
 def points_from_depth(depth: np.ndarray, geom: RectifiedGeometry, *, stride: int = 1,
@@ -218,17 +295,28 @@ def reproject_q(disparity: np.ndarray, Q: np.ndarray) -> np.ndarray:
 
 def triangulate(disparity: np.ndarray, geom: RectifiedGeometry, *, image: np.ndarray | None = None,
                 confidence: np.ndarray | None = None, normals: bool = False, stride: int = 1,
-                min_depth: float | None = None, max_depth: float | None = None) -> tuple[np.ndarray, PointCloud]:
-    """Depth map (H, W) float32 and the valid points (with colours from ``image`` when given)."""
+                min_depth: float | None = None, max_depth: float | None = None,
+                disparity_range: tuple[int, int] | None = None, left_valid: np.ndarray | None = None,
+                right_valid: np.ndarray | None = None, min_confidence: float | None = None,
+                supported: bool = True) -> tuple[np.ndarray, PointCloud]:
+    """Depth map (H, W) float32 and the points the match supports (with colours from ``image``
+    when given); the pixels dropped, by reason, in ``cloud.dropped`` (module docstring,
+    :func:`supported_pixels` for the arguments)."""
     d = np.asarray(disparity, dtype=np.float32)
     if d.ndim != 2:
         raise DataError(f"disparity must be 2-D, got shape {d.shape}")
-    for name, arr in (("image", image), ("confidence", confidence)):
+    for name, arr in (("image", image), ("confidence", confidence), ("left valid mask", left_valid),
+                      ("right valid mask", right_valid)):
         if arr is not None and arr.shape[:2] != d.shape:
             raise DataError(f"{name} is {arr.shape[1]}x{arr.shape[0]} but the disparity is {d.shape[1]}x{d.shape[0]}")
-    depth = depth_from_disparity(d, geom, min_depth=min_depth, max_depth=max_depth)
+    keep, dropped = supported_pixels(d, geom, disparity_range=disparity_range, left_valid=left_valid,
+                                     right_valid=right_valid, confidence=confidence, min_confidence=min_confidence,
+                                     supported=supported)
+    depth = depth_from_disparity(np.where(keep, d, np.float32(np.inf)), geom, min_depth=min_depth,
+                                 max_depth=max_depth)
+    dropped["depth_limits"] = int((keep & ~np.isfinite(depth)).sum())
     pts, rows, cols = points_from_depth(depth, geom, stride=stride)
-    cloud = PointCloud(pts, rows, cols)
+    cloud = PointCloud(pts, rows, cols, dropped=dropped)
     if image is not None:
         img = image
         if img.dtype == np.uint16:
@@ -250,6 +338,8 @@ def summarize(depth: np.ndarray, cloud: PointCloud, geom: RectifiedGeometry) -> 
     out = {"points": int(cloud.points.shape[0]), "pixels": int(depth.size),
            "valid_fraction": float(finite.size / depth.size) if depth.size else 0.0,
            "units": geom.units, "frame": FRAME, "geometry": geom.as_dict()}
+    if cloud.dropped:
+        out["dropped"] = dict(cloud.dropped)
     if finite.size:
         q = np.percentile(finite, [1, 5, 50, 95, 99])
         out["depth_percentiles"] = {k: float(v) for k, v in zip(("p1", "p5", "p50", "p95", "p99"), q)}

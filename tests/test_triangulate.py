@@ -32,9 +32,15 @@ def test_synthetic_points_recovered():
     Z = geom.f * geom.baseline / (disp.astype(np.float64) + geom.doffs)
     X, Y = Z * (x - geom.cx) / geom.f, Z * (y - geom.cy) / geom.f
     truth = np.stack([X, Y, Z], -1)[cloud.rows, cloud.cols]
-    assert cloud.points.shape == (disp.size, 3)
+    # The left columns whose match lands left of the right image (x − d < −0.5) are unmatched.
+    seen = np.floor(x - disp + 0.5) >= 0
+    assert cloud.points.shape == (int(seen.sum()), 3) and cloud.dropped["unmatched"] == int((~seen).sum())
     np.testing.assert_allclose(cloud.points, truth, rtol=1e-4, atol=1e-6)
-    np.testing.assert_allclose(depth, 2.0 + 0.002 * x + 0.001 * y, rtol=1e-4)
+    np.testing.assert_allclose(depth[seen], (2.0 + 0.002 * x + 0.001 * y)[seen], rtol=1e-4)
+    assert np.isinf(depth[~seen]).all()
+    everything, cloud = triangulate(disp, geom, supported=False)
+    assert cloud.points.shape == (disp.size, 3)
+    np.testing.assert_allclose(everything, 2.0 + 0.002 * x + 0.001 * y, rtol=1e-4)
 
 
 def test_q_path_agrees_with_opencv():
@@ -79,11 +85,15 @@ def test_middlebury_depth_exact(shared_data, tmp_path, run_cli):
     assert res.code == 0, res.err
     depth = read_pfm(tmp_path / "out" / "Adirondack" / "depth.pfm")
     expected = (mb.baseline * mb.cam0[0, 0] / (gt.astype(np.float64) + mb.doffs)).astype(np.float32)
-    finite = np.isfinite(gt)
+    # Points whose match lands left of the right image (the left border's occluded strip) are dropped.
+    x = np.arange(gt.shape[1])[None, :]
+    finite = np.isfinite(gt) & (np.floor(x - np.where(np.isfinite(gt), gt, 0) + 0.5) >= 0)
     assert np.array_equal(depth[finite], expected[finite])
     assert np.isinf(depth[~finite]).all()
     summary = json.loads((tmp_path / "out" / "Adirondack" / "summary.json").read_text())
     assert summary["units"] == "mm" and summary["points"] == int(finite.sum())
+    assert summary["dropped"]["unmatched"] == int((np.isfinite(gt) & ~finite).sum()) > 0
+    assert summary["range"] == {"min_disp": 0, "ndisp": mb.ndisp, "source": str(scene / "calib.txt")}
     from plyfile import PlyData
 
     ply = PlyData.read(str(tmp_path / "out" / "Adirondack" / "cloud.ply"))
@@ -130,10 +140,11 @@ def test_triangulate_cli_outputs(tmp_path, run_cli):
                   "--ascii", "--units", "mm", "--no-color")
     assert res.code == 0, res.err
     a = PlyData.read(str(tmp_path / "a.ply"))["vertex"]
-    assert a.count == int(np.isfinite(disp).sum()) and float(np.min(a["z"])) > 1999
+    seen = np.isfinite(disp) & (np.floor(x - np.where(np.isfinite(disp), disp, 0) + 0.5) >= 0)
+    assert a.count == int(seen.sum()) and float(np.min(a["z"])) > 1999
     assert run_cli("triangulate", tmp_path / "disp0.pfm", "--calib", tmp_path / "rig.yml", "-o",
                    tmp_path / "p.npy").code == 0
-    assert np.load(tmp_path / "p.npy").shape == (int(np.isfinite(disp).sum()), 3)
+    assert np.load(tmp_path / "p.npy").shape == (int(seen.sum()), 3)
 
 
 def test_triangulate_errors(tmp_path, run_cli):

@@ -27,6 +27,11 @@ from .pattern import Pattern
 
 MIN_VIEWS = 3
 RECOMMENDED_VIEWS = 10
+#: A corner whose rectified rows differ by more than this (px) is named in a warning: matching
+#: searches along rows, and a pair rectified with such an error loses its matches there.
+EPIPOLAR_LIMIT = 1.0
+#: Corners a warning names per view (report.json lists them all).
+NAMED_CORNERS = 3
 
 
 @dataclass(frozen=True)
@@ -191,18 +196,46 @@ def outlier_threshold(errors: np.ndarray) -> float:
 
 
 def rectified_epipolar_error(calib: StereoCalibration, views: list[View]) -> dict:
-    """Mean and max ``|y_left − y_right|`` (px) of all corresponding corners after rectification."""
+    """``|y_left − y_right|`` (px) of all corresponding corners after rectification: ``mean``,
+    ``max``, ``points``, each view's max (``per_view``: name → px) and the corners above
+    :data:`EPIPOLAR_LIMIT` (``above_limit``: per view, ``name``, the two images, ``max`` and
+    ``corners``, each with its ``index`` in detection order, left-image ``x``/``y`` and ``dy``,
+    largest first)."""
     undistort = cv2.fisheye.undistortPoints if calib.model == "fisheye" else cv2.undistortPoints
-    dys = []
+    dys, per_view, above = [], {}, []
     for v in views:
         D1 = calib.D1[:4] if calib.model == "fisheye" else calib.D1
         D2 = calib.D2[:4] if calib.model == "fisheye" else calib.D2
         a = undistort(v.left_points.reshape(-1, 1, 2).astype(np.float64), calib.K1, D1, R=calib.R1, P=calib.P1)
         b = undistort(v.right_points.reshape(-1, 1, 2).astype(np.float64), calib.K2, D2, R=calib.R2, P=calib.P2)
         axis = 0 if abs(calib.P2[1, 3]) > abs(calib.P2[0, 3]) else 1
-        dys.append(np.abs(a[:, 0, axis] - b[:, 0, axis]))
+        dy = np.abs(a[:, 0, axis] - b[:, 0, axis])
+        dys.append(dy)
+        per_view[v.name] = float(dy.max())
+        high = np.flatnonzero(dy > EPIPOLAR_LIMIT)
+        if high.size:
+            high = high[np.argsort(-dy[high], kind="stable")]
+            above.append({"name": v.name, "left_image": v.left, "right_image": v.right, "max": float(dy.max()),
+                          "corners": [{"index": int(i), "x": float(v.left_points[i, 0]),
+                                       "y": float(v.left_points[i, 1]), "dy": float(dy[i])} for i in high]})
     d = np.concatenate(dys)
-    return {"mean": float(d.mean()), "max": float(d.max()), "points": int(d.size)}
+    return {"mean": float(d.mean()), "max": float(d.max()), "points": int(d.size), "per_view": per_view,
+            "above_limit": above}
+
+
+def _epipolar_warning(above: list[dict]) -> str:
+    """The warning naming the views and corners whose rectified rows differ by more than
+    :data:`EPIPOLAR_LIMIT`."""
+    corners = sum(len(v["corners"]) for v in above)
+    parts = []
+    for v in above:
+        named = ", ".join(f"corner {c['index']} at ({c['x']:.0f}, {c['y']:.0f}) {c['dy']:.2f} px"
+                          for c in v["corners"][:NAMED_CORNERS])
+        more = len(v["corners"]) - NAMED_CORNERS
+        parts.append(f"{v['name']} ({named}{f' and {more} more' if more > 0 else ''})")
+    return (f"rectified |y_left - y_right| above {EPIPOLAR_LIMIT:g} px at {corners} corner(s) of {len(above)} "
+            f"view(s): {'; '.join(parts)}; rows that far apart lose their matches: check these detections "
+            "(corner index in detection order, left-image pixels) or calibrate without these views")
 
 
 def _warnings(calib: StereoCalibration, board_distance: float, n_views: int) -> list[str]:
@@ -264,11 +297,15 @@ def calibrate_stereo(views: list[View], image_size: tuple[int, int], pattern: Pa
     thr = outlier_threshold(per_view.max(axis=1))
     per = [{"name": v.name, "left_image": v.left, "right_image": v.right, "left": float(e[0]),
             "right": float(e[1]), "outlier": bool(max(e) > thr)} for v, e in zip(active, per_view)]
+    for p in per:
+        p["epipolar_error_max"] = epi["per_view"][p["name"]]
     warnings = _warnings(calib, board_distance, len(active))
     outliers = [p["name"] for p in per if p["outlier"]]
     if outliers:
         warnings.append(f"{len(outliers)} outlier view(s) ({', '.join(outliers[:5])}) above {thr:.3f} px; "
                         "consider --max-view-error")
+    if epi["above_limit"]:
+        warnings.append(_epipolar_warning(epi["above_limit"]))
 
     def cam(K, D):
         return {"fx": float(K[0, 0]), "fy": float(K[1, 1]), "cx": float(K[0, 2]), "cy": float(K[1, 2]),
@@ -293,7 +330,8 @@ def calibrate_stereo(views: list[View], image_size: tuple[int, int], pattern: Pa
         "rotation_deg": rotation_angle_deg(calib.R, np.eye(3)),
         "board_distance_median": board_distance,
         "rectified": {"alpha": opts.alpha, "epipolar_error_mean": epi["mean"], "epipolar_error_max": epi["max"],
-                      "points": epi["points"], "roi_left": list(rect.roi1), "roi_right": list(rect.roi2),
+                      "points": epi["points"], "epipolar_limit": EPIPOLAR_LIMIT,
+                      "above_limit": epi["above_limit"], "roi_left": list(rect.roi1), "roi_right": list(rect.roi2),
                       "focal": float(calib.P1[0, 0]),
                       "doffs": float(calib.P2[0, 2] - calib.P1[0, 2])},
         "warnings": warnings,
@@ -314,10 +352,13 @@ def format_report(report: dict) -> str:
         lines.append(f"  dropped: {item['name']} (RMS {item['rms']:.3f} px > --max-view-error)")
     lines.append(f"RMS reprojection error: stereo {r['rms']['stereo']:.4f} px "
                  f"(left {r['rms']['left']:.4f}, right {r['rms']['right']:.4f})")
-    lines.append(f"per-view RMS (px), outlier above {r['outlier_threshold']:.3f}:")
+    limit = r["rectified"].get("epipolar_limit", EPIPOLAR_LIMIT)
+    lines.append(f"per-view RMS (px), outlier above {r['outlier_threshold']:.3f}; rectified max |dy| (px):")
     for p in r["per_view"]:
         flag = "  <- outlier" if p["outlier"] else ""
-        lines.append(f"  {p['name']:>12s}  left {p['left']:.4f}  right {p['right']:.4f}{flag}")
+        dy = p.get("epipolar_error_max")
+        dy_text = "" if dy is None else f"  max |dy| {dy:.2f}{f' > {limit:g}' if dy > limit else ''}"
+        lines.append(f"  {p['name']:>12s}  left {p['left']:.4f}  right {p['right']:.4f}{dy_text}{flag}")
     for side in ("left", "right"):
         c = r["intrinsics"][side]
         dist = " ".join(f"{v:.5g}" for v in c["distortion"])

@@ -19,6 +19,10 @@ class Finite(click.FloatRange):
             self.fail(f"{excerpt(value, quote=True)} is not a finite number", param, ctx)
         return number
 
+    def _describe_range(self) -> str:
+        # --help shows the bounds; without any, nothing (click would print "x<=None").
+        return "" if self.min is None and self.max is None else super()._describe_range()
+
 class _NdispType(click.ParamType):
     """A number of disparities in [1, 100000], or ``auto`` (estimate the range from the images)."""
 
@@ -74,7 +78,9 @@ output_format = click.option("--format", "fmt", type=click.Choice(["text", "json
 config_files = click.option("-c", "--config", "config_files", multiple=True, metavar="FILE|PRESET",
                             help="YAML config file or bundled preset name (repeatable; later wins).")
 sets = click.option("-s", "--set", "sets", multiple=True, metavar="SECTION.KEY=VALUE",
-                    help="Override one config value (repeatable; beats --config).")
+                    help="Override one config value (repeatable; beats --config); listed stages: "
+                         "refinement+=STAGE appends, refinement.lr_check+=STAGE inserts before lr_check, "
+                         "refinement-=median removes, refinement.median=STAGE replaces.")
 
 
 def batch(func):

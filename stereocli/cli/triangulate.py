@@ -21,13 +21,21 @@ from ..errors import ConfigError as usage_error  # one-line message, exit 2
 @click.option("--scenes", type=click.Path(file_okay=False),
               help="The pairs (e.g. rectify's output, any layout match reads) whose calib.txt and left image "
                    "go with the disparity of the same name.")
-@click.option("--confidence", type=click.Path(dir_okay=False), help="Confidence map (PFM/npy) stored per point.")
+@click.option("--confidence", type=click.Path(dir_okay=False),
+              help="Confidence map (PFM/npy) stored per point (default: conf0.pfm beside the disparity).")
+@click.option("--min-confidence", type=options.Finite(0, 1),
+              help="Drop points whose confidence is below this (needs a confidence map; match writes 0 where it "
+                   "filled or found nothing).")
 @click.option("--scale", type=options.Finite(min=0, min_open=True),
               help="Disparity scale of integer PNG inputs (d = value / scale; 16-bit default 256).")
 @click.option("--units", type=click.Choice(["m", "cm", "mm"]), help="Depth unit (default: the calibration's).")
 @click.option("--use-q", is_flag=True, help="Take f, cx, cy, B, doffs from the Q matrix instead of P1/P2.")
-@click.option("--min-depth", type=options.Finite(), help="Drop points nearer than this (depth units).")
-@click.option("--max-depth", type=options.Finite(), help="Drop points farther than this (depth units).")
+@click.option("--min-depth", type=options.Finite(min=0), help="Drop points nearer than this (depth units).")
+@click.option("--max-depth", type=options.Finite(min=0, min_open=True),
+              help="Drop points farther than this (depth units).")
+@click.option("--keep-unsupported", is_flag=True,
+              help="Also keep points the match does not support: disparities outside the range it searched, "
+                   "pixels no right-view pixel shows, and d + doffs < 2 px (near infinity).")
 @click.option("--stride", type=click.IntRange(1, 1000), default=1, show_default=True,
               help="Keep every STRIDE-th pixel in x and y (point cloud decimation).")
 @click.option("--ascii", "ascii_ply", is_flag=True, help="ASCII PLY instead of binary little endian.")
@@ -42,14 +50,18 @@ from ..errors import ConfigError as usage_error  # one-line message, exit 2
 @options.batch
 @options.verbose
 @click.pass_context
-def triangulate_cmd(ctx, inputs, output, calib_path, image, scenes, confidence, scale, units, use_q, min_depth,
-                    max_depth, stride, ascii_ply, normals, no_color, npy, depth_format, depth_png16, summary, fmt,
-                    overwrite, skip_existing, dry_run, jobs, scheduler, retries):
+def triangulate_cmd(ctx, inputs, output, calib_path, image, scenes, confidence, min_confidence, scale, units, use_q,
+                    min_depth, max_depth, keep_unsupported, stride, ascii_ply, normals, no_color, npy, depth_format,
+                    depth_png16, summary, fmt, overwrite, skip_existing, dry_run, jobs, scheduler, retries):
     """Turn disparity maps into depth maps and coloured point clouds.
 
     Z = f·B / (d + doffs), X = Z·(x − cx)/f, Y = Z·(y − cy)/f in the rectified left camera
     frame (x right, y down, z forward), in the calibration's unit (Middlebury calib.txt: mm).
-    Invalid and out-of-range pixels are dropped from clouds and +inf in depth maps.
+    Only what the match supports becomes a point: invalid disparities, disparities outside the
+    range the match searched (params.json beside the disparity, else calib.txt), pixels no
+    right-view pixel shows (valid masks, the image's edge) and d + doffs < 2 px are dropped, and
+    so are depths outside --min-depth/--max-depth; depth maps hold +inf there. --summary and
+    run.json count the dropped pixels by reason.
 
     \b
     Examples:
@@ -67,7 +79,8 @@ def triangulate_cmd(ctx, inputs, output, calib_path, image, scenes, confidence, 
         load_calibration(calib_path)  # fail fast on unreadable / unknown calibration
     verbosity = options.verbosity(ctx)
     opts = {"scale": scale, "units": units, "use_q": use_q, "min_depth": min_depth, "max_depth": max_depth,
-            "stride": stride, "ascii": ascii_ply, "normals": normals, "color": not no_color}
+            "stride": stride, "ascii": ascii_ply, "normals": normals, "color": not no_color,
+            "min_confidence": min_confidence, "keep_unsupported": keep_unsupported}
     items, problems = plan_items(inputs, output, calib=calib_path, image=image, scenes=scenes, confidence=confidence,
                                  npy=npy, depth_format=depth_format, depth_png16=depth_png16, summary=summary,
                                  options=opts)
@@ -88,6 +101,8 @@ def triangulate_cmd(ctx, inputs, output, calib_path, image, scenes, confidence, 
         for r in result.results:
             if r.status == "ok":
                 p = r.details.get("depth_percentiles", {})
+                dropped = ", ".join(f"{n} {reason}" for reason, n in r.details.get("dropped", {}).items() if n)
                 click.echo(f"{r.name}: {r.details['points']} points, median depth {p.get('p50', float('nan')):.4g} "
-                           f"{r.details['units']} -> {r.outputs['cloud']}", err=True)
+                           f"{r.details['units']}{f' (pixels dropped: {dropped})' if dropped else ''} -> "
+                           f"{r.outputs['cloud']}", err=True)
     ctx.exit(code)

@@ -40,6 +40,28 @@ class MiddleburyCalib:
         return float(self.cam0[0, 0])
 
 
+#: stereocli's own calib.txt key (``rectify`` writes it): the smallest disparity of the range,
+#: which is then ``[mindisp, ndisp)`` (Middlebury's is ``[0, ndisp)``).
+MIN_DISP_KEY = "mindisp"
+
+
+def calib_range(calib: "MiddleburyCalib", path: str | os.PathLike) -> tuple[int, int] | None:
+    """``(min_disp, ndisp)`` of the range a calib.txt gives: ``[0, ndisp)``, or
+    ``[mindisp, ndisp)`` with stereocli's ``mindisp=`` line; None without ``ndisp``."""
+    if calib.ndisp <= 0:
+        return None
+    raw = calib.extra.get(MIN_DISP_KEY)
+    if raw is None:
+        return 0, int(calib.ndisp)
+    try:
+        low = int(raw)
+    except ValueError:
+        raise DataError(f"{path}: {MIN_DISP_KEY}={excerpt(raw, quote=True)} is not an integer") from None
+    if low >= calib.ndisp:
+        raise DataError(f"{path}: {MIN_DISP_KEY}={low} leaves no disparity below ndisp={calib.ndisp}")
+    return low, int(calib.ndisp) - low
+
+
 def _matrix(text: str, path: Path, key: str) -> np.ndarray:
     values = [float(v) for v in _NUMBER.findall(text)]
     if len(values) != 9 or not all(map(math.isfinite, values)):

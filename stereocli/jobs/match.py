@@ -63,13 +63,15 @@ def resolve_range(pair: StereoInput, ndisp: int | str | None, min_disp: int | No
     """
     info: dict = {}
     if pair.calib:
-        from ..io.middlebury import read_calib_txt
+        from ..io.middlebury import calib_range, read_calib_txt
 
         calib = read_calib_txt(pair.calib)
         info = {"vmin": calib.vmin, "vmax": calib.vmax}
         if ndisp is None and calib.ndisp > 0:
             info["range_source"] = "calib.txt"
-            return int(min_disp or 0), int(calib.ndisp), info
+            if min_disp is not None:
+                return int(min_disp), int(calib.ndisp), info
+            return (*calib_range(calib, pair.calib), info)
         if ndisp is None and min_disp is None:
             info["note"] = f"{pair.calib}: ndisp={calib.ndisp} gives no range; the range is estimated from the images"
     if ndisp is None or ndisp == AUTO:
@@ -183,11 +185,13 @@ def _load_mask(path: str | None) -> np.ndarray | None:
 def check_confidence(config: dict) -> None:
     """Raise :class:`ConfigError` unless the pipeline of ``config`` (a plain dict) produces a
     confidence map (``match --confidence``): a refinement stage whose traits say so."""
-    if not _config(config).produces_confidence():
+    from ..matching.config import confidence_hint
+
+    validated = _config(config)
+    if not validated.produces_confidence():
         names = ", ".join(c["name"] for c in config.get("refinement", [])) or "none"
         raise ConfigError(f"--confidence: the configured pipeline produces no confidence map (refinement: {names}); "
-                          "add a refinement stage that does, e.g. --set 'refinement=[..., {name: confidence}]' "
-                          "in a config file")
+                          f"add a refinement stage that does, e.g. {confidence_hint(validated)}")
 
 
 def _read_views(item: WorkItem, gray: bool = False) -> tuple[np.ndarray, np.ndarray]:
@@ -342,6 +346,8 @@ def match_item(item: WorkItem) -> dict:
         "memory_estimate_gb": round(_planned_gb(memory, result), 3),
         "mde_per_s": round(w * h * ndisp / max(seconds, 1e-9) / 1e6, 2),
         "valid_fraction": round(float(finite.mean()), 6),
+        # Pixels no right-view pixel shows over the range: invalid, or filled with their row's background.
+        "unmatched": result.unmatched,
         **survey,
     }
     if result.notes:

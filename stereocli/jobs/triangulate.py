@@ -25,16 +25,36 @@ def find_disparity(folder: Path) -> Path | None:
     return others[0] if others else None
 
 
-def _match_inputs(folder: Path) -> dict:
-    """The inputs ``stereocli match`` recorded in ``params.json`` beside its outputs (calib, left)."""
+def _match_record(folder: Path) -> dict:
+    """``params.json`` that ``stereocli match`` wrote beside its outputs ({} if none or unreadable)."""
     params = folder / "params.json"
     if not params.is_file():
         return {}
     try:
-        recorded = json.loads(read_text_limited(params, "params.json")).get("inputs", {})
+        recorded = json.loads(read_text_limited(params, "params.json"))
     except (OSError, ValueError):
         return {}
+    return recorded if isinstance(recorded, dict) else {}
+
+
+def _match_inputs(folder: Path) -> dict:
+    """The inputs ``stereocli match`` recorded in ``params.json`` beside its outputs (calib, left,
+    valid masks)."""
+    recorded = _match_record(folder).get("inputs", {})
+    if not isinstance(recorded, dict):
+        return {}
     return {k: v for k, v in recorded.items() if isinstance(v, str) and Path(v).is_file()}
+
+
+def _searched_range(folder: Path) -> dict | None:
+    """``{"min_disp", "ndisp", "source"}``: the range ``stereocli match`` searched, from its
+    ``params.json`` in ``folder``; None without one."""
+    recorded = _match_record(folder)
+    span = recorded.get("range") if isinstance(recorded.get("range"), dict) else recorded
+    low, ndisp = span.get("min_disp"), span.get("ndisp")
+    if isinstance(low, int) and isinstance(ndisp, int) and not isinstance(low, bool) and ndisp > 0:
+        return {"min_disp": low, "ndisp": ndisp, "source": str(folder / "params.json")}
+    return None
 
 
 def _find_inputs(inputs: list[str] | tuple[str, ...]) -> tuple[list[tuple[str, Path]], list[str]]:
@@ -116,9 +136,17 @@ def plan_items(inputs: list[str] | tuple[str, ...], output: str, *, calib: str |
         img = image or beside("im0.png") or recorded.get("left")
         if img:
             inputs_["image"] = str(img)
-        conf = confidence or (beside("conf0.pfm") if not single else None)
+        conf = confidence or beside("conf0.pfm")
         if conf:
             inputs_["confidence"] = str(conf)
+        # What the match saw: the valid masks (unmatched pixels) and the range it searched.
+        for key, fname in (("left_valid", "valid0.png"), ("right_valid", "valid1.png")):
+            mask = recorded.get(key) or beside(fname)
+            if mask:
+                inputs_[key] = str(mask)
+        searched = _searched_range(disp.parent)
+        if searched is not None:
+            inputs_["params"] = searched["source"]
         if single:
             stem = out.with_suffix("")
             outputs = {"cloud": str(out)}
@@ -142,6 +170,24 @@ def plan_items(inputs: list[str] | tuple[str, ...], output: str, *, calib: str |
     return items, problems
 
 
+def _item_range(item: WorkItem) -> dict | None:
+    """The range the match searched: from ``params.json`` beside the disparity, else from the
+    calib.txt (``[0, ndisp)``, or ``[mindisp, ndisp)`` as ``rectify`` writes it); None if neither
+    says."""
+    if "params" in item.inputs:
+        searched = _searched_range(Path(item.inputs["params"]).parent)
+        if searched is not None:
+            return searched
+    path = item.inputs["calibration"]
+    if Path(path).suffix.lower() == ".txt":
+        from ..io.middlebury import calib_range, read_calib_txt
+
+        span = calib_range(read_calib_txt(path), path)
+        if span is not None:
+            return {"min_disp": span[0], "ndisp": span[1], "source": str(path)}
+    return None
+
+
 def triangulate_item(item: WorkItem) -> dict:
     """Triangulate one disparity map (:func:`stereocli.triangulate`); write cloud, depth and
     summary; returns the summary."""
@@ -152,10 +198,14 @@ def triangulate_item(item: WorkItem) -> dict:
 
     o = item.options
     image = item.inputs["image"] if "image" in item.inputs and o.get("color", True) else None
+    searched = _item_range(item)
     result = triangulate(item.inputs["disparity"], item.inputs["calibration"], image=image,
                          confidence=item.inputs.get("confidence"), units=o.get("units"), use_q=o.get("use_q", False),
                          min_depth=o.get("min_depth"), max_depth=o.get("max_depth"), stride=o.get("stride", 1),
-                         normals=o.get("normals", False), scale=o.get("scale"))
+                         normals=o.get("normals", False), scale=o.get("scale"),
+                         disparity_range=(searched["min_disp"], searched["ndisp"]) if searched else None,
+                         left_valid=item.inputs.get("left_valid"), right_valid=item.inputs.get("right_valid"),
+                         min_confidence=o.get("min_confidence"), supported=not o.get("keep_unsupported"))
     geom = result.geometry
     out = item.outputs
     comments = [f"stereocli triangulate: units {geom.units}; frame {FRAME}",
@@ -173,6 +223,7 @@ def triangulate_item(item: WorkItem) -> dict:
     if "depth_png16" in out:
         clipped = write_depth_png16_mm(out["depth_png16"], result.depth, geom.units)
     info = result.summary()
+    info["range"] = searched
     if clipped:
         info["depth_png16_unrepresentable"] = clipped
     if "summary" in out:

@@ -112,13 +112,33 @@ def validate(config: dict, source: str = "<config>") -> PipelineConfig:
         if call.stage.traits.needs_cost and seen_map_stage:
             raise ConfigError(
                 f"{source}: refinement: {call.stage.name!r} reads the cost volume and must come before "
-                f"{seen_map_stage!r} (stages that only edit the disparity map run after the volume is dropped)"
+                f"{seen_map_stage!r} (stages that only edit the disparity map run after the volume is dropped); "
+                f"e.g. --set refinement.{first_map_stage(ref)}+={call.stage.name} inserts it before the first of them"
             )
         if not call.stage.traits.needs_cost:
             seen_map_stage = call.stage.name
     runtime_stage = Stage("runtime", "runtime", lambda *a: None, RuntimeParams, "", "")
     runtime = runtime_stage.make_params(config.get("runtime", {}), source=source, section="runtime")
     return PipelineConfig(pre, cost, agg, opt, ref, runtime)
+
+
+def first_map_stage(refinement: list[StageCall]) -> str:
+    """How ``--set`` addresses the first refinement that only edits the map (not ``needs_cost``):
+    its name, or its index when the name is listed twice; the list's length when there is none
+    (inserting there appends)."""
+    names = [c.stage.name for c in refinement]
+    for i, call in enumerate(refinement):
+        if not call.stage.traits.needs_cost:
+            return call.stage.name if names.count(call.stage.name) == 1 else str(i)
+    return str(len(refinement))
+
+
+def confidence_hint(config: PipelineConfig) -> str:
+    """The ``--set`` that adds a ``confidence`` stage to ``config``: before the first stage that
+    only edits the map (the stage reads the cost volume)."""
+    target = first_map_stage(config.refinement)
+    where = "refinement+=" if target == str(len(config.refinement)) else f"refinement.{target}+="
+    return f"--set {where}confidence"
 
 
 def build_config(config_files: Sequence[str | os.PathLike | Mapping] = (), sets: Sequence[str] = (), *,
@@ -149,7 +169,8 @@ def build_config(config_files: Sequence[str | os.PathLike | Mapping] = (), sets:
         sources.append(f"--set {assignment}")
     for key, value in (values or {}).items():
         where = f"set {excerpt(key)}={excerpt(value, quote=True)}"
-        merged = set_value(merged, split_key(key, where), copy.deepcopy(value), where)
+        parts, op = split_key(key, where)
+        merged = set_value(merged, parts, copy.deepcopy(value), where, op=op)
         validate(merged, where)
         sources.append(where)
     result = validate(merged, excerpt(sources[-1]))

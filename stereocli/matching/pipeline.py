@@ -49,6 +49,7 @@ from .kernels.images import luma
 from .kernels.winners import wta_right
 from .refine import clear_invalid_left
 from .state import MatchState, Wants
+from .visibility import find_unmatched, keep_in_range
 
 #: Use fused cost + WTA kernels when the pipeline allows it (False forces the volume path).
 FUSED = True
@@ -74,6 +75,9 @@ class MatchResult:
     strips: int = 1
     memory_estimate_gb: float = 0.0
     notes: dict = field(default_factory=dict)  # stage name -> facts a stage found (e.g. row_align's fit)
+    #: pixels without a match (:meth:`~stereocli.matching.visibility.Unmatched.counts`): invalid, or
+    #: filled with their row's background, confidence 0
+    unmatched: dict = field(default_factory=dict)
 
 
 def volume_copies(config: PipelineConfig) -> float:
@@ -426,7 +430,9 @@ def finish(prepared: PreparedPair, results: Iterable[StripResult], config: Pipel
 
     ``results`` may be an iterator: each strip's rows are copied into the whole maps as it
     comes, so strips made on demand are never all held at once. A plan of one strip takes its
-    maps as they are (without a copy: the map stages may edit them).
+    maps as they are (without a copy: the map stages may edit them). Pixels no right-view pixel
+    can show leave the map before the map stages (:mod:`.visibility`), and every map stage's
+    output is kept inside the searched range.
     """
     state = prepared.state
     shape = state.shape
@@ -444,11 +450,20 @@ def finish(prepared: PreparedPair, results: Iterable[StripResult], config: Pipel
 
     map_stages = [c for c in _refinements(config, prepared.keep_invalid) if not c.stage.traits.needs_cost]
     state.cost = None
-    state.disparity, state.disparity_right = maps["disparity"], maps["disparity_right"]
+    t0 = time.perf_counter()
+    # Pixels without a match leave the map before any map stage reads it (visibility.py).
+    disparity = keep_in_range(maps["disparity"], state.min_disp, state.ndisp)
+    unmatched = find_unmatched(shape, state.min_disp, state.ndisp, state.left_valid, state.right_valid)
+    disparity = np.where(unmatched.outside_views, np.float32(np.inf), disparity)
+    # Pixels invalid at some point from here on, filled or not: their confidence is 0 (a map
+    # stage may make the confidence map too).
+    holes = ~np.isfinite(disparity)
+    timings["unmatched"] = time.perf_counter() - t0
+    state.disparity, state.disparity_right = disparity, maps["disparity_right"]
     state.confidence = maps["confidence"]
     state.integer_disparity, state.integer_disparity_right = maps["integer_disparity"], maps["integer_disparity_right"]
     # Only the state holds the maps now, so a map stage that replaces one frees it.
-    result, maps = None, None
+    result, maps, disparity = None, None, None
     for call in map_stages:
         if call.stage.traits.needs_mirrored:
             t0 = time.perf_counter()
@@ -458,8 +473,16 @@ def finish(prepared: PreparedPair, results: Iterable[StripResult], config: Pipel
             timings[key] = timings.get(key, 0.0) + time.perf_counter() - t0
         _timed(timings, f"refinement.{call.stage.name}", call.stage.func, state, call.params)
         state.mirrored_disparity = None
+        state.disparity = keep_in_range(state.disparity, state.min_disp, state.ndisp)
+        holes |= ~np.isfinite(state.disparity)
+    filled = any(c.stage.traits.fills_holes for c in map_stages)
+    state.disparity = _settle_outside_views(state.disparity, unmatched.outside_views, filled)
     clear_invalid_left(state)
+    if state.confidence is not None:
+        state.confidence = np.where(holes | unmatched.outside_views | ~np.isfinite(state.disparity), np.float32(0),
+                                    state.confidence).astype(np.float32)
     if state.disparity_right is not None:
+        state.disparity_right = keep_in_range(state.disparity_right, state.min_disp, state.ndisp)
         # The right map was matched on ``state.right``, whose rows a preprocess stage may have moved.
         state.disparity_right = _right_map_rows(state, state.disparity_right, to_input=True)
     _current_config.pop(threading.get_ident(), None)
@@ -472,6 +495,7 @@ def finish(prepared: PreparedPair, results: Iterable[StripResult], config: Pipel
         strips=len(strips),
         memory_estimate_gb=planned_peak(config, shape[0], shape[1], state.ndisp, strips, prepared.images) / GIB,
         notes=dict(state.notes),
+        unmatched=unmatched.counts(),
     )
 
 
@@ -494,6 +518,19 @@ def _own_map(part: np.ndarray, shape: tuple[int, int]) -> bool:
     """Whether a whole-image strip map can be the pair's map as it is (what a copy into a fresh
     float32 map would give)."""
     return part.shape == shape and part.dtype == np.float32 and part.flags.c_contiguous and part.flags.writeable
+def _settle_outside_views(disparity: np.ndarray, outside: np.ndarray, filled: bool) -> np.ndarray:
+    """``disparity`` with the pixels ``outside`` the views (:class:`~.visibility.Unmatched`)
+    invalid, or, when a stage ``filled`` the map's holes, holding the nearest visible background
+    of their row (the smaller of the nearest valid disparities on either side, as ``fill``
+    gives): whatever the stages after the fill did to them."""
+    if not outside.any():
+        return disparity
+    cleared = np.where(outside, np.float32(np.inf), disparity)
+    if not filled:
+        return cleared
+    from .kernels.maps import fill_background
+
+    return np.where(outside, fill_background(cleared), disparity).astype(np.float32)
 
 
 def _right_map_rows(state: MatchState, right_map: np.ndarray, *, to_input: bool) -> np.ndarray:
