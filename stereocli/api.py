@@ -176,6 +176,8 @@ class MatchResult:
     survey_seconds : time spent estimating the range and measuring the rows.
     strips : row strips the pair was matched in (1 when it fits ``runtime.memory_gb``).
     memory_estimate_gb : estimated peak memory of one strip, GiB.
+    unmatched : pixels no right-view pixel can show for the searched range (``{"pixels": N, ...}``):
+        invalid, or given their row's background by a fill; their confidence is 0.
     config : the effective, validated configuration that ran.
     """
 
@@ -191,6 +193,7 @@ class MatchResult:
     survey_seconds: float = 0.0
     strips: int = 1
     memory_estimate_gb: float = 0.0
+    unmatched: dict = field(default_factory=dict)
     config: PipelineConfig | None = field(default=None, repr=False)
 
     def __repr__(self) -> str:
@@ -424,7 +427,7 @@ def match(
         disparity_right=result.disparity_right if disparity_right else None, timings=result.timings,
         notes=result.notes, alignment=survey["alignment"], warnings=rows_corrected(survey["warnings"], note),
         seconds=seconds, survey_seconds=survey["survey_seconds"], strips=result.strips,
-        memory_estimate_gb=result.memory_estimate_gb, config=cfg)
+        memory_estimate_gb=result.memory_estimate_gb, unmatched=result.unmatched, config=cfg)
 
 
 # --------------------------------------------------------------------------- triangulate
@@ -600,8 +603,10 @@ def triangulate(
     >>> disparity = np.full((60, 80), 25.0, np.float32)
     >>> disparity[0, 0] = np.inf  # invalid
     >>> cloud = stereocli.triangulate(disparity, calib, units="m")
-    >>> float(cloud.depth[30, 40]), cloud.units, cloud.points.shape
-    (2.0, 'm', (4799, 3))
+    >>> float(cloud.depth[30, 40]), cloud.units, cloud.points.shape  # columns 0-24 match outside the right view
+    (2.0, 'm', (3300, 3))
+    >>> cloud.dropped["unmatched"]
+    1499
     """
     from .io.images import read_disparity
     from .triangulation import depth_from_disparity, summarize

@@ -187,7 +187,8 @@ def test_a_config_object_is_used_as_it_is_and_threads_apply_to_the_call_only():
 
 @pytest.mark.parametrize("kwargs, message", [
     ({"set": {"optimizer.p3": 1}}, "set optimizer.p3=1: optimizer.p3: unknown parameter"),
-    ({"set": {"optimizer": 1}}, "expected section.key"),
+    ({"set": {"optimizer": 1}}, "set optimizer=1: expected a stage"),
+    ({"set": {"p2": 1}}, "set p2=1: expected section.key"),
     ({"preset": "fastest"}, "fastest: no such config file or preset"),
     ({"threads": -1}, "threads must be a whole number >= 0"),
     ({"min_disp": 3}, "min_disp needs ndisp"),

@@ -73,5 +73,5 @@ def test_real_rig_report_names_views_02_and_05(shared_data, tmp_path, run_cli):
     assert {v["name"] for v in report["rectified"]["above_limit"]} == {"02", "05"}
     assert per_view["05"] == pytest.approx(3.65, abs=0.05)
     assert all(dy <= 1.0 for name, dy in per_view.items() if name not in ("02", "05"))
-    assert "warning: rectified |y_left - y_right| above 1 px at " in r.err and " view(s): 02 (corner " in r.err
-    assert "max |dy| 3.65 > 1" in r.err
+    assert "Warning: rectified |y_left - y_right| above 1 px at " in r.err and " view(s): 02 (corner " in r.err
+    assert "max |dy| 3.65 > 1" in r.out  # the report's per-view table (stdout)
