@@ -24,7 +24,8 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
     "stages": ("stages", "stages_cmd", "List every registered stage and its parameters."),
     "config": ("config_cmd", "config_group", "Show the effective matching configuration."),
     "demo": ("demo", "demo_cmd", "Run the whole chain on the bundled samples and print the scores."),
-    "warmup": ("warmup", "warmup_cmd", "Compile the matching kernels ahead of the first run (Docker images, CI caches)."),
+    "warmup": ("warmup", "warmup_cmd",
+               "Compile the matching kernels ahead of the first run (Docker images, CI caches)."),
 }
 
 

@@ -37,7 +37,8 @@ def write_ply(path: str | os.PathLike, points: np.ndarray, *, colors: np.ndarray
     if not np.isfinite(pts).all():
         raise DataError(f"{path}: refusing to write non-finite points to PLY (drop invalid points first)")
     n = pts.shape[0]
-    for name, arr, shape in (("colors", colors, (n, 3)), ("normals", normals, (n, 3)), ("confidence", confidence, (n,))):
+    for name, arr, shape in (("colors", colors, (n, 3)), ("normals", normals, (n, 3)),
+                             ("confidence", confidence, (n,))):
         if arr is not None and np.shape(arr) != shape:
             raise ValueError(f"{name} must have shape {shape}, got {np.shape(arr)}")
     dtype = _vertex_dtype(normals is not None, colors is not None, confidence is not None)

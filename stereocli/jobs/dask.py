@@ -80,7 +80,8 @@ def check_scheduler(scheduler: str | None) -> None:
         raise ConfigError("the dask executor needs --scheduler tcp://host:port (or --scheduler local)")
     m = _ADDRESS.match(scheduler)
     if scheduler != "local" and not m:
-        raise ConfigError(f"--scheduler {excerpt(scheduler)}: expected tcp://host:port (e.g. tcp://127.0.0.1:8786) or 'local'")
+        raise ConfigError(f"--scheduler {excerpt(scheduler)}: expected tcp://host:port "
+                          "(e.g. tcp://127.0.0.1:8786) or 'local'")
     require_distributed()
     if m and m.group(1):
         from distributed.comm.registry import backends
@@ -114,7 +115,8 @@ def probe_scheduler(scheduler: str, timeout: float | None = None) -> None:
     try:
         reply = asyncio.run(bounded())
     except (asyncio.TimeoutError, TimeoutError):
-        raise ConfigError(f"--scheduler {excerpt(scheduler)}: no Dask scheduler answered within {timeout:g} s") from None
+        raise ConfigError(f"--scheduler {excerpt(scheduler)}: no Dask scheduler answered "
+                          f"within {timeout:g} s") from None
     except Exception as exc:  # noqa: BLE001 - refused, reset, garbled handshake: not a scheduler
         raise ConfigError(f"--scheduler {excerpt(scheduler)}: not a reachable Dask scheduler "
                           f"({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else 'no detail'})") from None

@@ -73,7 +73,7 @@ class WorkItem:
             out["error"] = self.error
         return out
 
-    def absolute(self) -> "WorkItem":
+    def absolute(self) -> WorkItem:
         """The same item with absolute input and output paths (workers may run elsewhere)."""
         return replace(self, inputs={k: os.path.abspath(v) for k, v in self.inputs.items()},
                        outputs={k: os.path.abspath(v) for k, v in self.outputs.items()},
@@ -104,7 +104,7 @@ class ItemResult:
         return asdict(self)
 
     @classmethod
-    def failure(cls, item: WorkItem, message: str, exit_code: int = EXIT_DATA) -> "ItemResult":
+    def failure(cls, item: WorkItem, message: str, exit_code: int = EXIT_DATA) -> ItemResult:
         """A failed outcome for ``item`` that never produced a result (dead worker, lost task)."""
         return cls(item.name, "failed", message=label_message(item.name, message), inputs=item.inputs,
                    outputs=item.outputs, exit_code=exit_code)
