@@ -12,8 +12,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import REPO
 
+from conftest import REPO
 from stereocli.matching.config import build_config
 from stereocli.matching.kernels import aot
 from stereocli.matching.pipeline import match_pair

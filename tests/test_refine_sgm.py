@@ -148,7 +148,8 @@ def test_median_matches_reference_dense_or_with_holes(size, shape, threads):
     # Dense maps take OpenCV's median in two row bands (tall enough maps) plus the border
     # kernel, maps with holes also the kernel near them, 7x7 the general kernel everywhere:
     # every path gives the reference's values, whatever the thread count.
-    from stereocli.matching.kernels import refine as kr, set_threads
+    from stereocli.matching.kernels import refine as kr
+    from stereocli.matching.kernels import set_threads
 
     rng = np.random.default_rng(size)
     set_threads(threads)
