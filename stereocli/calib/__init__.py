@@ -58,20 +58,21 @@ def calibrate_pairs(pairs: list, pattern: Pattern, options: CalibOptions | None 
     from ..errors import DataError
     from .pattern import detect
 
-    named, arrays = [], {}
+    named: list[tuple[str, str, str]] = []
+    arrays = {}
     for i, pair in enumerate(pairs):
         try:
             left, right = pair
         except (TypeError, ValueError):
             raise DataError(f"calibration pair {i}: expected (left, right)") from None
-        keys = []
+        keys: list[str] = []
         for side, image in (("left", left), ("right", right)):
             if isinstance(image, (str, os.PathLike)):
                 keys.append(str(image))
             else:
                 keys.append(f"pair{i}/{side}")
                 arrays[keys[-1]] = image
-        named.append((f"pair{i}", *keys))
+        named.append((f"pair{i}", keys[0], keys[1]))
     if swap:
         named = [(n, right, left) for n, left, right in named]
     if not named:

@@ -92,7 +92,7 @@ COMPILE_NOTICE = ("stereocli: compiling the numba kernels that this preset or im
 def _on_first_compile(ctx: click.Context):
     """What to do when kernels compile: say so once, and warm up the first pair's config (at a
     compile during its matching: one during a pair's survey comes before it is known)."""
-    said = []
+    said: list[bool] = []
 
     def on_compile() -> bool:
         if not said:

@@ -44,7 +44,7 @@ import re
 import signal
 import time
 from pathlib import Path
-from typing import Any, Callable, Iterator, Sequence
+from typing import Any, Callable, Iterator, Sequence, cast
 
 from ..errors import EXIT_USAGE, ConfigError, excerpt
 from .items import ItemResult, WorkItem, finished_in_run, prepare_worker, run_one
@@ -322,7 +322,7 @@ def run_dask(items: Sequence[WorkItem], item_fn: Callable, verbose_errors: bool,
     require_distributed()
     if not items:
         return []
-    with connect(scheduler, jobs) as client:
+    with connect(cast(str, scheduler), jobs) as client:  # connect refuses a missing scheduler itself
         batch = _DaskBatch(client, list(items), item_fn, verbose_errors, retries,
                            record or (lambda k, res, final: None))
         try:
@@ -331,7 +331,7 @@ def run_dask(items: Sequence[WorkItem], item_fn: Callable, verbose_errors: bool,
             with contextlib.suppress(Exception):
                 client.cancel(list(batch.pending.futures), force=True)
             raise
-    return batch.results  # type: ignore[return-value]
+    return cast("list[ItemResult]", batch.results)  # every item has its result once run() returns
 
 
 class _DaskBatch:
