@@ -53,7 +53,7 @@ class RowAlignment:
     @property
     def aligned(self) -> bool:
         """True unless the measurement shows rows out of line (unmeasured counts as aligned)."""
-        return not self.measured or self.max_offset <= self.threshold
+        return self.max_offset is None or self.max_offset <= self.threshold
 
     def describe(self) -> str:
         if not self.measured:

@@ -392,6 +392,8 @@ def locally_consistent(state: MatchState, p: LocallyConsistentParams) -> None:
     disparity field; O(window²) per pixel, independent of D. Range [0, 1]; points that no
     support asserts get cost 1 (invalid after WTA).
     """
+    if state.cost is None:  # (never: the pipeline runs a cost stage first)
+        raise RuntimeError("aggregation.locally_consistent: no cost volume")
     disp, _ = wta_left(state.cost, state.min_disp, np.float32(state.cost_max))
     disp_k = np.where(np.isfinite(disp), disp - state.min_disp, -1).astype(np.int32)
     left = np.ascontiguousarray(state.left if state.left.ndim == 3 else state.left[..., None], dtype=np.float32)

@@ -36,6 +36,8 @@ def run_cost_stage(state: MatchState, call) -> None:
     right pixel is outside ``state.right_valid`` the volume's maximum cost."""
     call.stage.func(state, call.params)
     if state.right_valid is not None:
+        if state.cost is None:
+            raise RuntimeError(f"cost.{call.stage.name}: left no cost volume")
         kl.mask_invalid_right(state.cost, state.right_valid, state.min_disp, np.float32(state.cost_max))
 
 

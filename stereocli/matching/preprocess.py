@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Literal, cast
 
 import cv2
 import numpy as np
@@ -408,10 +408,10 @@ def row_align(state: MatchState, p: RowAlignParams) -> None:
 
     h, w = state.shape
     if not p.measure:
-        plane = VerticalOffset(p.offset, p.tilt_x, p.tilt_y, w, h, 0, 0.0)
-        if plane.largest > 0:
-            _move_right_rows(state, plane)
-        state.notes["row_align"] = {**plane.as_dict(), "applied": plane.largest > 0, "given": True}
+        given = VerticalOffset(p.offset, p.tilt_x, p.tilt_y, w, h, 0, 0.0)
+        if given.largest > 0:
+            _move_right_rows(state, given)
+        state.notes["row_align"] = {**given.as_dict(), "applied": given.largest > 0, "given": True}
         return
     lo, hi = state.min_disp - 1.0, state.min_disp + state.ndisp
     scale = p.reduce
@@ -420,7 +420,8 @@ def row_align(state: MatchState, p: RowAlignParams) -> None:
     left_xy, right_xy = track_rows(state.gray("left"), state.gray("right"), disparity_range=(lo, hi),
                                    left_valid=state.left_valid, points=p.points, window=p.window, sigma=p.sigma,
                                    max_offset=p.max_offset, scale=scale)
-    plane = fit_vertical_offset(left_xy, right_xy, w, h, model=p.model, min_tracks=p.min_tracks)
+    model = cast(Literal["plane", "constant"], p.model)  # one of the parameter's choices
+    plane = fit_vertical_offset(left_xy, right_xy, w, h, model=model, min_tracks=p.min_tracks)
     # ``measured``: the plane is a measurement of the rows (enough tracks, close to it), whether
     # or not it was applied; the match job then takes the pair's row alignment from it.
     note: dict = {"tracks_found": int(len(left_xy)), "reduced": scale}

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from typing import cast
 
 import cv2
 import numpy as np
@@ -48,7 +49,7 @@ def stereo_rectify(calib, *, alpha: float = 0.0, size: tuple[int, int] | None = 
     """Rectify a :class:`~stereocli.io.calib.StereoCalibration` (alpha in [0, 1]; size = (w, h))."""
     if not (0.0 <= alpha <= 1.0) and alpha != -1:
         raise ConfigError(f"--alpha must be in [0, 1], got {alpha}")
-    out_size = tuple(int(v) for v in (size or calib.image_size))
+    out_size = cast("tuple[int, int]", tuple(int(v) for v in (size or calib.image_size)))  # (w, h)
     if min(out_size) <= 0 or min(calib.image_size) <= 0:
         raise DataError(f"calibration image size {calib.image_size} is not usable for rectification")
     if max(*out_size, *calib.image_size) > MAX_SIDE:
@@ -67,7 +68,13 @@ def stereo_rectify(calib, *, alpha: float = 0.0, size: tuple[int, int] | None = 
     R1, R2, P1, P2, Q, roi1, roi2 = cv2.stereoRectify(
         calib.K1, calib.D1, calib.K2, calib.D2, calib.image_size, calib.R, calib.T.reshape(3, 1),
         flags=cv2.CALIB_ZERO_DISPARITY, alpha=alpha, newImageSize=out_size)
-    return Rectification(R1, R2, P1, P2, Q, out_size, tuple(int(v) for v in roi1), tuple(int(v) for v in roi2))
+    return Rectification(R1, R2, P1, P2, Q, out_size, _box(roi1), _box(roi2))
+
+
+def _box(roi) -> tuple[int, int, int, int]:
+    """OpenCV's (x, y, w, h) ROI as four Python ints."""
+    x, y, w, h = (int(v) for v in roi)
+    return x, y, w, h
 
 
 def rectified_calibration(calib, *, alpha: float = 0.0, size: tuple[int, int] | None = None,
@@ -190,7 +197,11 @@ def check_image(left: np.ndarray, right: np.ndarray, rect: Rectification | None 
         return cv2.cvtColor(im, cv2.COLOR_GRAY2RGB) if im.ndim == 2 else im.copy()
 
     a, b = rgb8(left), rgb8(right)
-    for im, roi in zip((a, b), rois or (rect.roi1, rect.roi2)):
+    if not rois:
+        if rect is None:
+            raise ValueError("check_image needs rect or rois")
+        rois = (rect.roi1, rect.roi2)
+    for im, roi in zip((a, b), rois):
         x, y, w, h = roi
         if w > 0 and h > 0:
             cv2.rectangle(im, (x, y), (x + w - 1, y + h - 1), (0, 255, 0), 1)

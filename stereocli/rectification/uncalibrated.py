@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass, field, replace
-from typing import Sequence
+from typing import Any, Protocol, Sequence, cast
 
 import cv2
 import numpy as np
@@ -482,12 +482,24 @@ class PairEstimate:
 
     def as_dict(self) -> dict:
         """Return the report as plain JSON types."""
-        out = {"matches": self.matches, "inliers": self.inliers, "fits": self.fits,
+        out: dict[str, Any] = {"matches": self.matches, "inliers": self.inliers, "fits": self.fits,
                "dy_median": None if self.dy_median is None else round(self.dy_median, 3),
                "dy_p90": None if self.dy_p90 is None else round(self.dy_p90, 3)}
         if self.error:
             out["error"] = self.error
         return out
+
+
+class ImagePairs(Protocol):
+    """The pairs :func:`estimate_rectification` reads: ``len()``, and ``[i]`` for pair ``i``.
+
+    ``[i]`` gives the ``(left, right)`` images of pair ``i``: a list, or an object that reads them
+    when asked.
+    """
+
+    def __len__(self) -> int: ...
+
+    def __getitem__(self, index: int, /) -> tuple[np.ndarray, np.ndarray]: ...
 
 
 @dataclass
@@ -499,7 +511,7 @@ class RigEstimate:
     magsac_inliers: int
 
 
-def estimate_rectification(pairs: Sequence[tuple[np.ndarray, np.ndarray]], *,
+def estimate_rectification(pairs: ImagePairs, *,
                            rounds: int = GUIDED_ROUNDS) -> RigEstimate:
     """Estimate one uncalibrated rectification for the pairs of a rig.
 
@@ -544,7 +556,7 @@ def estimate_rectification(pairs: Sequence[tuple[np.ndarray, np.ndarray]], *,
             continue
         descriptor[i] = found
     used = sorted(descriptor)
-    if not used:
+    if not used or size is None:  # (size is set by every pair in used)
         raise DataError(next((r.error for r in results if r.error), "no pairs"))
     matches = [descriptor[i] for i in used]
     fit = fit_rectification(matches, size)
@@ -562,23 +574,25 @@ def estimate_rectification(pairs: Sequence[tuple[np.ndarray, np.ndarray]], *,
         r0, r1, _, _ = warp_pair(*pairs[i], rect)
         kept = PointMatches(m.left[inliers], m.right[inliers], m.features)
         try:
-            found = estimate_range(r0, r1, rectified_matches(rect, kept))
+            pair_range = estimate_range(r0, r1, rectified_matches(rect, kept))
         except DataError as exc:
             est.error = str(exc)
             continue
-        est.min_disp, est.max_disp, est.evidence = found.min_disp, found.max_disp, found.as_dict()
+        est.min_disp, est.max_disp, est.evidence = pair_range.min_disp, pair_range.max_disp, pair_range.as_dict()
     ranged = [r for r in results if r.min_disp is not None]
     if not ranged:
         raise DataError(next((r.error for r in results if r.error), "no disparity range"))
     # The rig's pairs set the shift (a pair that does not fit it has no meaningful range); an
     # integer, so the ranges stay whole pixels.
-    shift = min(_lowest_disparity(r.evidence) for r in ([r for r in ranged if r.fits] or ranged))
+    # (Every pair in ``ranged`` got min_disp, max_disp and evidence together.)
+    shift = min(_lowest_disparity(cast(dict, r.evidence)) for r in ([r for r in ranged if r.fits] or ranged))
     for r in ranged:
-        r.min_disp, r.max_disp = max(0, r.min_disp - shift), r.max_disp - shift
-        r.evidence["min_disp"] -= shift
+        evidence = cast(dict, r.evidence)
+        r.min_disp, r.max_disp = max(0, cast(int, r.min_disp) - shift), cast(int, r.max_disp) - shift
+        evidence["min_disp"] -= shift
         for key in ("dense_percentiles", "sparse_percentiles"):
-            if r.evidence.get(key) is not None:
-                r.evidence[key] = [round(v - shift, 2) for v in r.evidence[key]]
+            if evidence.get(key) is not None:
+                evidence[key] = [round(v - shift, 2) for v in evidence[key]]
     return RigEstimate(framed(shifted(rect, float(shift))), results, fit.magsac_inliers)
 
 

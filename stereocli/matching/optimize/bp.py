@@ -55,6 +55,8 @@ def bp(state: MatchState, p: BPParams) -> None:
     the cost range ``cost_max`` (like ``sgm``'s penalties).
     """
     cost = state.cost
+    if cost is None:  # (never: the pipeline runs a cost stage first)
+        raise RuntimeError("optimizer.bp: no cost volume")
     h, w, nd = cost.shape
     data0 = kb.data_term(cost, float(p.data_weight), float(p.data_trunc) * state.cost_max)
     wh0, wv0 = edge_weights(np.ascontiguousarray(state.gray("left")), float(p.edge_threshold), float(p.edge_factor))
@@ -65,10 +67,10 @@ def bp(state: MatchState, p: BPParams) -> None:
             break
         ca, cb = kb.downsample_weights(a, b)
         pyramid.append((kb.downsample_data(d), ca, cb))
-    msgs = None
+    msgs: list[np.ndarray] = []
     for data, wh, wv in reversed(pyramid):
         lh, lw = data.shape[:2]
-        if msgs is None:
+        if not msgs:
             msgs = [np.zeros((lh, lw, nd), np.float32) for _ in range(4)]
         else:
             msgs = [kb.upsample_messages(m, lh, lw) for m in msgs]

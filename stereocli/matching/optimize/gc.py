@@ -125,6 +125,8 @@ def gc(state: MatchState, p: GCParams) -> None:
     """
     maxflow = _import_maxflow()
     cost = state.cost
+    if cost is None:  # (never: the pipeline runs a cost stage first)
+        raise RuntimeError("optimizer.gc: no cost volume")
     h, w, nd = cost.shape
     data = cost if p.data_trunc <= 0 else np.minimum(cost, np.float32(p.data_trunc * state.cost_max))
     wh, wv = edge_weights(np.ascontiguousarray(state.gray("left")), float(p.edge_threshold), float(p.edge_factor))
