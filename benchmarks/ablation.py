@@ -21,9 +21,9 @@ import sys
 import tempfile
 from pathlib import Path
 
-import accuracy  # benchmarks/accuracy.py: scenes, scoring rules; puts the checkout on sys.path
 import yaml
 
+import accuracy  # benchmarks/accuracy.py: scenes, scoring rules; puts the checkout on sys.path
 from stereocli.config import load_yaml, resolve_config_path
 from stereocli.evaluation.api import weighted_average
 from stereocli.matching.config import build_config

@@ -53,10 +53,10 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from stereocli.config import preset_names  # noqa: E402
-from stereocli.matching.config import build_config  # noqa: E402
 from stereocli.evaluation.api import EvalOptions, evaluate_pair, weighted_average  # noqa: E402
 from stereocli.evaluation.datasets import load_scene  # noqa: E402
 from stereocli.io.images import read_image  # noqa: E402
+from stereocli.matching.config import build_config  # noqa: E402
 from stereocli.runtime import set_threads as set_kernel_threads  # noqa: E402
 from stereocli.matching.pipeline import match_pair  # noqa: E402
 from stereocli.process import keep_freed_memory, prepare_kernels  # noqa: E402
@@ -342,7 +342,8 @@ def main(argv=None) -> int:
     ap.add_argument("--set", dest="sets", action="append", default=[], help="--set for every preset")
     ap.add_argument("--opencv", default="bm,sgbm,3way,hh", help="OpenCV methods: bm, sgbm, 3way, hh ('' for none)")
     ap.add_argument("--pandora", default=None, help="path to a `pandora` executable (own virtualenv)")
-    ap.add_argument("--resolution", default="Q", choices=["Q"], help="MiddEval3 resolution (only Q is in ../shared/data)")
+    ap.add_argument("--resolution", default="Q", choices=["Q"],
+                    help="MiddEval3 resolution (only Q is in ../shared/data)")
     ap.add_argument("--threads", type=int, default=0, help="threads for OpenCV and numba (0 = all cores)")
     ap.add_argument("--repeat", type=int, default=1, help="timed runs per method (best kept)")
     ap.add_argument("--json", type=Path, default=REPO / "benchmarks" / "results" / "accuracy.json")
@@ -382,8 +383,8 @@ def main(argv=None) -> int:
 
     results: dict = {}
     for scene in scenes:
-        runs = timed_in_turns({name: (lambda fn=fn: fn(scene)) for name, fn in methods.items() if "Pandora" not in name},
-                              args.repeat)
+        in_turns = {name: (lambda fn=fn: fn(scene)) for name, fn in methods.items() if "Pandora" not in name}
+        runs = timed_in_turns(in_turns, args.repeat)
         for name, fn in methods.items():
             disp, seconds = runs[name] if name in runs else timed(lambda: fn(scene), 1, warm=False)
             h, w = disp.shape
@@ -391,8 +392,8 @@ def main(argv=None) -> int:
             results[(scene.name, name)] = {"scene": scene.name, "method": name, "dataset": scene.dataset,
                                            "seconds": seconds, "mde": w * h * scene.ndisp, "result": res}
             nonocc = res.metrics.get("nonocc") or {}
-            print(f"# {scene.name:12s} {name:22s} bad1 {fmt(nonocc.get('bad1.0')):>6} bad2 {fmt(nonocc.get('bad2.0')):>6} "
-                  f"{seconds * 1000:8.1f} ms", file=sys.stderr)
+            print(f"# {scene.name:12s} {name:22s} bad1 {fmt(nonocc.get('bad1.0')):>6} "
+                  f"bad2 {fmt(nonocc.get('bad2.0')):>6} {seconds * 1000:8.1f} ms", file=sys.stderr)
 
     method_names = list(methods)
     threads = args.threads or cv2.getNumThreads()
@@ -408,7 +409,8 @@ def main(argv=None) -> int:
         out.append(f"\n### {title}\n\n{threads} threads, best of {args.repeat} warm run(s).\n")
         header, rows = summary_rows(results, dataset, method_names, scenes, ref)
         out.append(markdown(header, rows))
-        per_header = ["scene", "method", "bad1.0 %", "bad2.0 %", "bad4.0 %", "avgerr", "invalid %", "ms", "MDE/s", "×3WAY"]
+        per_header = ["scene", "method", "bad1.0 %", "bad2.0 %", "bad4.0 %", "avgerr", "invalid %", "ms", "MDE/s",
+                      "×3WAY"]
         per_rows = []
         for s in (s for s in scenes if s.dataset == dataset):
             for m in method_names:

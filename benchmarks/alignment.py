@@ -82,7 +82,7 @@ def main() -> int:
         pairs += chessboard_pairs(args.data, Path(tmp))
     largest, alarms, seconds = 0.0, 0, 0.0
     flagged = dict.fromkeys(MISALIGNMENTS, 0)
-    for name, left, right in pairs:
+    for _name, left, right in pairs:
         measured = row_alignment(match_points(left, right))
         largest = max(largest, measured.max_offset or 0.0)
         alarms += not measured.aligned

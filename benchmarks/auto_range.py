@@ -32,9 +32,8 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "benchmarks"))
 
 from accuracy import DEFAULT_DATA, load_scenes, score  # noqa: E402
-
-from stereocli.io.pfm import read_pfm  # noqa: E402
 from stereocli.evaluation.datasets import load_scene  # noqa: E402
+from stereocli.io.pfm import read_pfm  # noqa: E402
 
 
 def lay_out(scenes, root: Path) -> tuple[Path, Path]:
@@ -46,7 +45,8 @@ def lay_out(scenes, root: Path) -> tuple[Path, Path]:
             folder = root / kind / scene.name
             folder.mkdir(parents=True)
             for stem, image in (("im0", scene.left), ("im1", scene.right)):
-                cv2.imwrite(str(folder / f"{stem}.png"), cv2.cvtColor(image, cv2.COLOR_RGB2BGR) if image.ndim == 3 else image)
+                cv2.imwrite(str(folder / f"{stem}.png"),
+                            cv2.cvtColor(image, cv2.COLOR_RGB2BGR) if image.ndim == 3 else image)
         (root / "known" / scene.name / "calib.txt").write_text(f"cam0=[1 0 0; 0 1 0; 0 0 1]\nndisp={scene.ndisp}\n")
     return root / "known", root / "auto"
 
@@ -87,15 +87,18 @@ def main() -> int:
             for kind in ("known", "auto"):
                 disp = read_pfm(root / f"out_{kind}" / scene.name / "disp0.pfm")
                 bad[kind] = score(scene, disp, 0.0).metrics["nonocc"]["bad2.0"]
-            rows.append({"scene": scene.name, "gt": [float(finite.min()), float(finite.max())], "range": [lo, lo + nd - 1],
-                         "ndisp": nd, "cover": 100 * cover, "ndisp_ratio": nd / (2 * span + 32),
+            rows.append({"scene": scene.name, "gt": [float(finite.min()), float(finite.max())],
+                         "range": [lo, lo + nd - 1], "ndisp": nd, "cover": 100 * cover,
+                         "ndisp_ratio": nd / (2 * span + 32),
                          "bad2_known": bad["known"], "bad2_auto": bad["auto"],
                          "alignment": params["alignment"]["max_offset"]})
-    print("| scene | GT range px | estimated range | covered % | ndisp / (2·span+32) | bad2.0 known | bad2.0 estimated | max vertical disparity px |")
+    print("| scene | GT range px | estimated range | covered % | ndisp / (2·span+32) | bad2.0 known | bad2.0 estimated "
+          "| max vertical disparity px |")
     print("|---|---|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['scene']} | {r['gt'][0]:.1f}–{r['gt'][1]:.1f} | {r['range'][0]}–{r['range'][1]} | {r['cover']:.2f} | "
-              f"{r['ndisp_ratio']:.2f} | {r['bad2_known']:.2f} | {r['bad2_auto']:.2f} | {r['alignment']:.2f} |")
+        print(f"| {r['scene']} | {r['gt'][0]:.1f}–{r['gt'][1]:.1f} | {r['range'][0]}–{r['range'][1]} "
+              f"| {r['cover']:.2f} | {r['ndisp_ratio']:.2f} | {r['bad2_known']:.2f} | {r['bad2_auto']:.2f} "
+              f"| {r['alignment']:.2f} |")
     known_t, auto_t = min(times["known"]), min(times["auto"])
     summary = {
         "min_cover": min(r["cover"] for r in rows), "max_ndisp_ratio": max(r["ndisp_ratio"] for r in rows),

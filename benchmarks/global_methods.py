@@ -31,8 +31,8 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from stereocli.matching.config import build_config  # noqa: E402
 from stereocli.evaluation.metrics import derive_nonocc_mask, middlebury_stats  # noqa: E402
+from stereocli.matching.config import build_config  # noqa: E402
 from stereocli.matching.kernels.maps import fill_background  # noqa: E402
 from stereocli.matching.pipeline import match_pair  # noqa: E402
 from stereocli.process import keep_freed_memory, prepare_kernels  # noqa: E402
@@ -44,10 +44,14 @@ DATA = REPO.parent / "shared" / "data"
 
 #: name -> (left, right, GT, right GT or None, GT scale, ndisp)
 SCENES = {
-    "tsukuba": ("middlebury2001/tsukuba/im3.png", "middlebury2001/tsukuba/im4.png", "middlebury2001/tsukuba/disp3.pgm", None, 16, 16),
-    "venus": ("middlebury2001/venus/im2.png", "middlebury2001/venus/im6.png", "middlebury2001/venus/disp2.pgm", None, 8, 20),
-    "teddy": ("middlebury2003/teddy/im2.png", "middlebury2003/teddy/im6.png", "middlebury2003/teddy/disp2.pgm", "middlebury2003/teddy/disp6.pgm", 4, 60),
-    "cones": ("middlebury2003/cones/im2.png", "middlebury2003/cones/im6.png", "middlebury2003/cones/disp2.pgm", "middlebury2003/cones/disp6.pgm", 4, 60),
+    "tsukuba": ("middlebury2001/tsukuba/im3.png", "middlebury2001/tsukuba/im4.png", "middlebury2001/tsukuba/disp3.pgm",
+                None, 16, 16),
+    "venus": ("middlebury2001/venus/im2.png", "middlebury2001/venus/im6.png", "middlebury2001/venus/disp2.pgm",
+              None, 8, 20),
+    "teddy": ("middlebury2003/teddy/im2.png", "middlebury2003/teddy/im6.png", "middlebury2003/teddy/disp2.pgm",
+              "middlebury2003/teddy/disp6.pgm", 4, 60),
+    "cones": ("middlebury2003/cones/im2.png", "middlebury2003/cones/im6.png", "middlebury2003/cones/disp2.pgm",
+              "middlebury2003/cones/disp6.pgm", 4, 60),
 }
 
 # Refinement chains. Labelling methods (dp, so, bp, gc) run without sub-pixel fitting: their
@@ -167,7 +171,8 @@ def main() -> None:
     print("|" + "---|" * (2 * len(scenes) + 2))
     rows = run(methods, scenes, args.repeat)
     if args.markdown:
-        args.markdown.write_text("\n".join([header, "|" + "---|" * (2 * len(scenes) + 2), *(_line(r, scenes) for r in rows)]) + "\n")
+        args.markdown.write_text("\n".join([header, "|" + "---|" * (2 * len(scenes) + 2),
+                                            *(_line(r, scenes) for r in rows)]) + "\n")
     if args.json:
         args.json.write_text(json.dumps(rows, indent=2))
 

@@ -38,10 +38,10 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from stereocli.matching.config import validate  # noqa: E402
 from stereocli.evaluation.datasets import load_middlebury_v2  # noqa: E402
 from stereocli.evaluation.metrics import middlebury_stats  # noqa: E402
 from stereocli.io.images import read_image  # noqa: E402
+from stereocli.matching.config import validate  # noqa: E402
 from stereocli.matching.pipeline import match_pair  # noqa: E402
 from stereocli.process import keep_freed_memory, prepare_kernels  # noqa: E402
 
@@ -123,7 +123,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, default=DATA)
     ap.add_argument("--methods", default="", help="comma-separated substrings of method names (default: all)")
-    ap.add_argument("--ranges", default="16,32,64,64", help="ndisp for Tsukuba,Venus,Teddy,Cones (SGM paper: 16,32,64,64)")
+    ap.add_argument("--ranges", default="16,32,64,64",
+                    help="ndisp for Tsukuba,Venus,Teddy,Cones (SGM paper: 16,32,64,64)")
     ap.add_argument("--threads", type=int, default=0)
     ap.add_argument("--no-subpixel", action="store_true",
                     help="integer disparities: no subpixel, no plane_smooth (Tsukuba's GT is integer)")
@@ -145,7 +146,7 @@ def main(argv=None) -> int:
     for method in wanted:
         config = config_for(method, args.threads, not args.no_subpixel)
         row, secs, parts = [], [], []
-        for name, left, right, sc, nd in scenes:
+        for _name, left, right, sc, nd in scenes:
             t0 = time.perf_counter()
             res = match_pair(left, right, config, ndisp=nd)
             secs.append(time.perf_counter() - t0)
@@ -163,7 +164,8 @@ def main(argv=None) -> int:
             cells = [f"{c} ({a:.1f}/{b:.2f})" for c, (a, b) in zip(cells, parts)]
         print(f"| {method} | " + " | ".join(cells) + f" | {np.mean(row):.2f} | {pub_txt} | {max(secs):.2f} |",
               flush=True)
-    print("\nnonocc bad > 1.0 px (%), dense maps (sub-pixel " + ("off" if args.no_subpixel else "on") + "); nonocc masks derived from the GT (not the official v2 masks); "
+    print("\nnonocc bad > 1.0 px (%), dense maps (sub-pixel " + ("off" if args.no_subpixel else "on") + "); "
+          "nonocc masks derived from the GT (not the official v2 masks); "
           f"ndisp {args.ranges}; "
           + ("cells: total (near depth edges / elsewhere, derived disc mask); " if args.breakdown else "")
           + "first run of each method includes numba compilation when the cache is cold.")

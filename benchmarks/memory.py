@@ -28,9 +28,9 @@ def child(args: argparse.Namespace) -> None:
     sys.path.insert(0, str(REPO))
     import cv2
 
-    from stereocli.matching.config import build_config
     from stereocli.io.images import read_image
     from stereocli.io.middlebury import read_calib_txt
+    from stereocli.matching.config import build_config
     from stereocli.matching.pipeline import match_pair
     from stereocli.process import keep_freed_memory
 

@@ -30,10 +30,9 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "tests"))
 
-from test_rectify_uncalibrated import _sift_dy, corner_dy_medians, warped_middlebury_case  # noqa: E402
-
 from stereocli.io.images import read_image  # noqa: E402
 from stereocli.io.middlebury import read_calib_txt  # noqa: E402
+from test_rectify_uncalibrated import _sift_dy, corner_dy_medians, warped_middlebury_case  # noqa: E402
 
 DATA = REPO.parent / "shared" / "data"
 #: The v2 scenes' ranges used by the SGM paper (16, 32, 64, 64).
@@ -57,8 +56,8 @@ def main() -> None:
     results: dict = {"middlebury": {}, "chessboard": {}}
     print("dy: |y_left - y_right| median/p90 (px) of SIFT matches that fit their own fundamental matrix;\n"
           "raw: of every ratio-tested mutual match (gross mismatches included)")
-    print(f"{'scene':12} {'original dy':>12} {'raw':>11} {'rectified dy':>13} {'raw':>11} {'GT dy':>11} {'GT min d':>9} "
-          f"{'bad2 orig':>10} {'bad2 mapped':>12} {'ratio':>6} {'seconds':>8}")
+    print(f"{'scene':12} {'original dy':>12} {'raw':>11} {'rectified dy':>13} {'raw':>11} {'GT dy':>11} "
+          f"{'GT min d':>9} {'bad2 orig':>10} {'bad2 mapped':>12} {'ratio':>6} {'seconds':>8}")
     for folder, left, right, ndisp in scenes(args.data):
         t0 = time.perf_counter()
         r = warped_middlebury_case(folder, left, right, ndisp)

@@ -33,6 +33,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "benchmarks"))
 from startup import stereocli_command  # noqa: E402  (the console script beside this Python)
+
 DATA = REPO.parent / "shared" / "data" / "middlebury2014" / "trainingQ"
 
 #: variant -> (extra environment, extra arguments)
@@ -56,7 +57,7 @@ def run(argv: list[str], env: dict) -> float:
 def measure(out: Path, repeat: int) -> dict[str, list[float]]:
     base = stereocli_command() + ["match", str(DATA), "-o", str(out), "--overwrite", "-q"]
     times: dict[str, list[float]] = {v: [] for v in VARIANTS}
-    for variant, (env, args) in VARIANTS.items():  # warm-up: caches, page cache
+    for env, args in VARIANTS.values():  # warm-up: caches, page cache
         run(base + args, dict(os.environ, **env))
     for _ in range(repeat):
         for variant, (env, args) in VARIANTS.items():

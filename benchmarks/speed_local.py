@@ -29,9 +29,9 @@ import cv2
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from stereocli.matching.config import build_config, validate  # noqa: E402
 from stereocli.io.images import read_image  # noqa: E402
 from stereocli.matching import pipeline  # noqa: E402
+from stereocli.matching.config import build_config, validate  # noqa: E402
 from stereocli.matching.pipeline import match_pair  # noqa: E402
 from stereocli.process import keep_freed_memory, prepare_kernels  # noqa: E402
 
@@ -122,7 +122,8 @@ def main(argv=None) -> int:
           f"best of {args.repeat} after a warm-up run\n")
     print("| method | seconds | MDE/s | × StereoBM |")
     print("|---|---|---|---|")
-    print(f"| OpenCV StereoBM (block 9, grey, its default post-filters) | {t_bm:.4f} | {bm_rate:.0f} | 1.00 |", flush=True)
+    print(f"| OpenCV StereoBM (block 9, grey, its default post-filters) | {t_bm:.4f} | {bm_rate:.0f} | 1.00 |",
+          flush=True)
     for label, spec in rows().items():
         if args.only and not any(s.strip().lower() in label.lower() for s in args.only.split(",")):
             continue

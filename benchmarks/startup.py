@@ -73,7 +73,8 @@ for src, out in zip(args[::2], args[1::2]):
     disp[raw < 0] = np.inf
     Path(out).mkdir(parents=True, exist_ok=True)
     h, w = disp.shape
-    (Path(out) / "disp0.pfm").write_bytes(b"Pf\n%d %d\n-1.0\n" % (w, h) + np.ascontiguousarray(disp[::-1]).astype("<f4").tobytes())
+    pfm = b"Pf\n%d %d\n-1.0\n" % (w, h) + np.ascontiguousarray(disp[::-1]).astype("<f4").tobytes()
+    (Path(out) / "disp0.pfm").write_bytes(pfm)
 """
 
 
@@ -187,7 +188,8 @@ def main() -> None:
     ap.add_argument("--cases", default="import,pair,folder", help="comma-separated: import, pair, folder")
     ap.add_argument("--repeat", type=int, default=5, help="rounds of alternating runs")
     ap.add_argument("--first-run", action="store_true", help="also time a match with an empty numba cache")
-    ap.add_argument("--command", default="", help="how to run stereocli (default: the console script beside this Python)")
+    ap.add_argument("--command", default="",
+                    help="how to run stereocli (default: the console script beside this Python)")
     args = ap.parse_args()
     COMMAND[:] = args.command.split()
     wanted = [c.strip() for c in args.cases.split(",") if c.strip()]
@@ -208,7 +210,8 @@ def main() -> None:
             best = {k: min(v) for k, v in t.items()}
             med = {k: statistics.median(v) for k, v in t.items()}
             for name in ("opencv", "stereocli", "JIT only"):
-                ratio = "" if name == "opencv" else f"{best[name] / best['opencv']:16.2f} {med[name] / med['opencv']:9.2f}"
+                ratio = ("" if name == "opencv" else
+                         f"{best[name] / best['opencv']:16.2f} {med[name] / med['opencv']:9.2f}")
                 print(f"{case:8} {name:10} {best[name]:8.3f} {med[name]:9.3f} {ratio}")
         if args.first_run:
             first_run(root, *make_pair(root))

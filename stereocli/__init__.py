@@ -41,8 +41,18 @@ __all__ = ["CalibrationResult", "EvalReport", "MatchRange", "MatchResult", "Rect
 
 TYPE_CHECKING = False  # (typing.TYPE_CHECKING without importing typing: type checkers read it as True)
 if TYPE_CHECKING:
-    from .api import (MatchRange, MatchResult, RectifyResult, TriangulationResult, calibrate, evaluate, match,
-                      read_image, rectify, triangulate)
+    from .api import (
+        MatchRange,
+        MatchResult,
+        RectifyResult,
+        TriangulationResult,
+        calibrate,
+        evaluate,
+        match,
+        read_image,
+        rectify,
+        triangulate,
+    )
     from .calib.stereo import CalibrationResult
     from .evaluation.api import EvalReport
 

@@ -1,9 +1,9 @@
-"""The five subcommands as five functions: :func:`calibrate`, :func:`rectify`, :func:`match`,
-:func:`triangulate` and :func:`evaluate`, plus :func:`read_image`.
+"""The five subcommands as five functions, plus :func:`read_image`.
 
-They take numpy arrays (and paths where that is natural) and return typed results. ``stereocli
-CMD`` runs exactly these functions on each item of a batch (:mod:`stereocli.jobs` adds reading,
-writing and the executors), so a call gives the command line's numbers bit for bit.
+:func:`calibrate`, :func:`rectify`, :func:`match`, :func:`triangulate` and :func:`evaluate` take
+numpy arrays (and paths where that is natural) and return typed results. ``stereocli CMD`` runs
+exactly these functions on each item of a batch (:mod:`stereocli.jobs` adds reading, writing and
+the executors), so a call gives the command line's numbers bit for bit.
 
 Images are ``(H, W)`` grey or ``(H, W, 3)`` **RGB** arrays, uint8, uint16 (scaled to [0, 255]
 inside) or float in [0, 255], as imageio, scikit-image and :func:`read_image` give them. OpenCV's
@@ -41,7 +41,7 @@ if TYPE_CHECKING:
 __all__ = ["MatchRange", "MatchResult", "RectifyResult", "TriangulationResult", "calibrate", "evaluate", "match",
            "read_image", "rectify", "triangulate"]
 
-PathLike = Union[str, os.PathLike]
+PathLike = str | os.PathLike
 #: Range sources of :class:`MatchRange`.
 RANGE_SOURCES = ("given", "calib.txt", "estimated")
 
@@ -151,6 +151,7 @@ class MatchRange:
         return self.min_disp + self.ndisp - 1
 
     def as_dict(self) -> dict:
+        """Return the range as plain JSON types (``params.json``'s ``range``)."""
         out = {"min_disp": self.min_disp, "ndisp": self.ndisp, "source": self.source}
         if self.evidence is not None:
             out["evidence"] = self.evidence
@@ -205,13 +206,15 @@ class MatchResult:
 
 
 ConfigLike = Union[str, os.PathLike, Mapping, "PipelineConfig", None]
-Assignments = Union[Mapping[str, Any], str, Sequence[str], None]
+Assignments = Mapping[str, Any] | str | Sequence[str] | None
 
 
 def match_config(preset: str | None = "default", config: ConfigLike = None, set: Assignments = None,
                  threads: int | None = None) -> PipelineConfig:
-    """The validated matching configuration of a :func:`match` call (see its parameters):
-    the ``default`` preset < ``preset`` < ``config`` < ``set`` < ``threads``."""
+    """Build the validated matching configuration of a :func:`match` call (see its parameters).
+
+    Later ones win: the ``default`` preset < ``preset`` < ``config`` < ``set`` < ``threads``.
+    """
     from .matching.config import PipelineConfig, build_config
 
     values: dict[str, Any] = {}
@@ -241,8 +244,10 @@ def match_config(preset: str | None = "default", config: ConfigLike = None, set:
 
 def _given_range(ndisp: int | str | None, min_disp: int | None, calib: Any,
                  name: str) -> tuple[int | None, int | None, str]:
-    """``(min_disp, ndisp, source)``: as given, else from ``calib`` (a calib.txt path or a
-    :class:`~stereocli.io.middlebury.MiddleburyCalib`), else ``(None, None, "estimated")``."""
+    """``(min_disp, ndisp, source)``: as given, else from ``calib``, else ``(None, None, "estimated")``.
+
+    ``calib`` is a calib.txt path or a :class:`~stereocli.io.middlebury.MiddleburyCalib`.
+    """
     if ndisp == "auto":
         ndisp = None
         calib = None
@@ -467,8 +472,10 @@ class TriangulationResult:
         return self.geometry.units
 
     def summary(self) -> dict:
-        """Point count, valid fraction, depth percentiles, bounding box, units and frame: the
-        ``--summary`` JSON of ``stereocli triangulate``."""
+        """Point count, valid fraction, depth percentiles, bounding box, units and frame.
+
+        The ``--summary`` JSON of ``stereocli triangulate``.
+        """
         from .triangulation import PointCloud, summarize
 
         cloud = PointCloud(self.points, self.rows, self.cols, self.colors, self.normals, self.confidence,
@@ -482,8 +489,10 @@ class TriangulationResult:
 
 
 def _refuse_uncalibrated(calib: Any) -> None:
-    """The calib.txt of ``rectify --uncalibrated`` has no baseline (and only a guessed focal
-    length): no depth can come from it."""
+    """Refuse the calib.txt of ``rectify --uncalibrated``: no depth can come from it.
+
+    It has no baseline, and only a guessed focal length.
+    """
     if isinstance(calib, (str, os.PathLike)) and Path(calib).suffix.lower() == ".txt":
         from .io.middlebury import read_calib_txt
 
@@ -500,8 +509,11 @@ def _calibration_label(calib: Any) -> str:
 
 
 def _geometry(calib: Any, use_q: bool) -> tuple[RectifiedGeometry, Any]:
-    """``(geometry, calibration)`` of ``calib``: a path, a StereoCalibration, a MiddleburyCalib
-    or a RectifiedGeometry (then no calibration object)."""
+    """``(geometry, calibration)`` of ``calib``.
+
+    ``calib`` is a path, a StereoCalibration, a MiddleburyCalib or a RectifiedGeometry (then no
+    calibration object).
+    """
     from .io.calib import StereoCalibration, from_middlebury, load_calibration
     from .io.middlebury import MiddleburyCalib
     from .triangulation import RectifiedGeometry, geometry_from_calibration
@@ -730,7 +742,7 @@ class RectifyResult:
     pair: Any = None
 
     def check_image(self) -> np.ndarray:
-        """An 8-bit side-by-side RGB preview with horizontal lines and the valid boxes (``check.png``)."""
+        """Draw an 8-bit side-by-side RGB preview with horizontal lines and the valid boxes (``check.png``)."""
         from .rectification.maps import Rectification, check_image, inner_box
 
         if isinstance(self.rectification, Rectification):
@@ -925,8 +937,7 @@ def calibrate(
     progress: bool | None = False,
     **options: Any,
 ) -> CalibrationResult:
-    """Calibrate a stereo rig from photos of a chessboard, circle grid or ChArUco board
-    (``stereocli calibrate``).
+    """Calibrate a stereo rig from photos of a chessboard, circle grid or ChArUco board (``stereocli calibrate``).
 
     Each camera is calibrated alone, then R and T with the intrinsics fixed (unless
     ``joint=True``); outlier views are flagged in the report.

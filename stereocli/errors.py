@@ -7,6 +7,7 @@ code (no traceback unless ``-vv``).
 from __future__ import annotations
 
 import difflib
+import os
 from typing import Iterable
 
 EXIT_OK = 0
@@ -95,11 +96,10 @@ def did_you_mean(word: str, options: Iterable[str]) -> str:
     return f" (did you mean {' or '.join(repr(c) for c in close)}?)" if close else ""
 
 
-def check_outputs_free(paths: Iterable[str], *, overwrite: bool, hint: str = "use --overwrite to replace") -> None:
+def check_outputs_free(paths: Iterable[str | os.PathLike], *, overwrite: bool,
+                       hint: str = "use --overwrite to replace") -> None:
     """The one overwrite policy: raise :class:`OutputExistsError` naming the first existing path
     (and how many more) unless ``overwrite``."""
-    import os
-
     if overwrite:
         return
     clashes = [str(p) for p in paths if os.path.lexists(p)]

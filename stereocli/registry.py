@@ -36,7 +36,7 @@ import importlib
 import math
 import typing
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any, Callable, Mapping
 
 from .errors import ConfigError, did_you_mean, excerpt
 
@@ -255,7 +255,7 @@ class Stage:
             kwargs[key] = _coerce(value, hints[key], f"{where}{key}", self._meta(key))
         return self.params_cls(**kwargs)
 
-    def _meta(self, key: str) -> dict:
+    def _meta(self, key: str) -> Mapping[str, Any]:
         return next(f.metadata for f in dataclasses.fields(self.params_cls) if f.name == key)
 
 
@@ -271,7 +271,7 @@ def _suggest(word: str, options: list[str]) -> str:
     return did_you_mean(word, options) + f"; valid: {', '.join(sorted(options))}"
 
 
-def _coerce(value: Any, tp: Any, where: str, meta: dict) -> Any:
+def _coerce(value: Any, tp: Any, where: str, meta: Mapping[str, Any]) -> Any:
     """Check ``value`` against type ``tp`` and the bounds in ``meta``; return the clean value."""
     if typing.get_origin(tp) is tuple:
         elem = typing.get_args(tp)[0]

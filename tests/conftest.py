@@ -30,8 +30,10 @@ def samples() -> Path:
 
 
 #: Middlebury v2 scenes under ``shared_data``: folder, left and right image stems, ndisp.
-V2_SCENES = {"tsukuba": ("middlebury2001/tsukuba", "im3", "im4", 16), "venus": ("middlebury2001/venus", "im2", "im6", 32),
-             "teddy": ("middlebury2003/teddy", "im2", "im6", 64), "cones": ("middlebury2003/cones", "im2", "im6", 64)}
+V2_SCENES = {"tsukuba": ("middlebury2001/tsukuba", "im3", "im4", 16),
+             "venus": ("middlebury2001/venus", "im2", "im6", 32),
+             "teddy": ("middlebury2003/teddy", "im2", "im6", 64),
+             "cones": ("middlebury2003/cones", "im2", "im6", 64)}
 
 
 def v2_bad1(shared_data: Path, scene: str, preset: str, sets: tuple[str, ...] = ()) -> float:

@@ -8,8 +8,8 @@ import pytest
 
 from local_scene import run_stages, scene, wta
 from stereocli import registry
-from stereocli.matching.config import build_config
 from stereocli.errors import ConfigError
+from stereocli.matching.config import build_config
 from stereocli.matching.kernels import aggregation as ka
 from stereocli.matching.kernels.aggregation import box_filter_volume
 
@@ -47,7 +47,8 @@ def test_shiftable_is_min_over_window_positions():
     from stereocli.matching.state import MatchState
 
     st = MatchState(np.zeros((9, 10), np.float32), np.zeros((9, 10), np.float32), 0, 1, cost=cost.copy(), cost_max=1.0)
-    registry.get("aggregation", "shiftable").func(st, registry.get("aggregation", "shiftable").make_params({"window": [3, 3]}))
+    shiftable = registry.get("aggregation", "shiftable")
+    shiftable.func(st, shiftable.make_params({"window": [3, 3]}))
     box = box_ref(cost, 1, 1)
     ref = np.empty_like(box)
     for y in range(9):

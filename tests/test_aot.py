@@ -12,8 +12,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import REPO
 
+from conftest import REPO
 from stereocli.matching.config import build_config
 from stereocli.runtime import aot
 from stereocli.matching.pipeline import match_pair

@@ -17,9 +17,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import REPO, SAMPLES
-
 import stereocli
+from conftest import REPO, SAMPLES
 from stereocli import api
 from stereocli.errors import ConfigError, DataError
 from stereocli.io.images import write_image

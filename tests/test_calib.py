@@ -109,8 +109,8 @@ def test_pairing_single_folder_by_number(tmp_path):
     for name in ("left01.jpg", "left02.jpg", "right01.jpg", "right02.jpg", "notes.txt"):
         (tmp_path / name).write_bytes(b"x")
     pairs = find_calibration_pairs(tmp_path)
-    assert [(n, Path(l).name, Path(r).name) for n, l, r in pairs] == [("01", "left01.jpg", "right01.jpg"),
-                                                                       ("02", "left02.jpg", "right02.jpg")]
+    assert [(n, Path(left).name, Path(right).name) for n, left, right in pairs] == [
+        ("01", "left01.jpg", "right01.jpg"), ("02", "left02.jpg", "right02.jpg")]
 
 
 def test_bad_inputs(rig_dir, tmp_path, run_cli):

@@ -8,8 +8,14 @@ from click.testing import CliRunner
 
 from stereocli.cli.main import cli
 from stereocli.errors import ConfigError, DataError
-from stereocli.io.calib import (StereoCalibration, detect_format, load_calibration, q_from_projections,
-                                ros_pair_paths, save_calibration)
+from stereocli.io.calib import (
+    StereoCalibration,
+    detect_format,
+    load_calibration,
+    q_from_projections,
+    ros_pair_paths,
+    save_calibration,
+)
 from stereocli.rectification import rectified_calibration
 from stereocli.synth.rig import default_rig
 

@@ -9,8 +9,8 @@ import re
 
 import numpy as np
 import pytest
-from conftest import REPO, two_scenes
 
+from conftest import REPO, two_scenes
 from stereocli.io.images import read_image
 from stereocli.runinfo import RunRecord
 
@@ -90,9 +90,8 @@ def test_viz_has_a_colour_bar_and_takes_a_range(run_cli, tmp_path):
 # --------------------------------------------------------------------------- HTML report
 
 def test_html_report_has_the_text_reports_time_columns(run_cli, tmp_path):
-    from test_eval_cli import make_mb2014_scene
-
     from stereocli.io.pfm import write_pfm
+    from test_eval_cli import make_mb2014_scene
 
     gt = make_mb2014_scene(tmp_path / "gt", "Adirondack")
     write_pfm(tmp_path / "res" / "Adirondack" / "disp0.pfm", np.where(np.isfinite(gt), gt, 3.0).astype(np.float32))

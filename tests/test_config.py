@@ -6,8 +6,8 @@ import pytest
 
 from stereocli import registry
 from stereocli.config import parse_set
-from stereocli.matching.config import build_config
 from stereocli.errors import ConfigError
+from stereocli.matching.config import build_config
 
 
 def test_every_stage_has_summary_and_documented_params():

@@ -8,8 +8,8 @@ import pytest
 
 from local_scene import run_stages, scene, two_colour_scene, wta
 from stereocli import registry
-from stereocli.matching.config import build_config
 from stereocli.errors import ConfigError
+from stereocli.matching.config import build_config
 
 ALL_COSTS = ["ad", "sd", "tad", "sad", "ssd", "stad", "ncc", "zncc", "gradient", "color_gradient",
              "bt", "census", "rank", "ad_census", "ordinal"]
@@ -107,7 +107,8 @@ def test_gradient_costs_exact():
 
     (lx, ly), (rx, ry) = grad(left), grad(right)
     st = run_stages(left, right, 3, [("cost", "gradient", {"direction": "xy"})])
-    ref = ref_pixel(left, right, 0, 3, lambda L, R, y, x, xr: 0.5 * (abs(lx[y, x] - rx[y, xr]) + abs(ly[y, x] - ry[y, xr])), 255.0)
+    ref = ref_pixel(left, right, 0, 3,
+                    lambda L, R, y, x, xr: 0.5 * (abs(lx[y, x] - rx[y, xr]) + abs(ly[y, x] - ry[y, xr])), 255.0)
     np.testing.assert_allclose(st.cost, ref, atol=1e-3)
     st = run_stages(left, right, 3, [("cost", "color_gradient", {"alpha": 0.25, "tau_color": 30, "tau_gradient": 9})])
     ref = ref_pixel(left, right, 0, 3, lambda L, R, y, x, xr: 0.75 * min(abs(L[y, x, 0] - R[y, xr, 0]), 30)
@@ -157,9 +158,13 @@ def test_census_rank_ordinal_exact():
         return np.delete(v < img[y, x], 4)
 
     st = run_stages(left, right, 3, [("cost", "census", {"window": [3, 3]})])
-    np.testing.assert_array_equal(st.cost, ref_pixel(left, right, 0, 3, lambda L, R, y, x, xr: np.sum(census(left, y, x) != census(right, y, xr)), 8.0))
+    np.testing.assert_array_equal(st.cost, ref_pixel(
+        left, right, 0, 3, lambda L, R, y, x, xr: np.sum(census(left, y, x) != census(right, y, xr)), 8.0))
     st = run_stages(left, right, 3, [("cost", "rank", {"window": [3, 3]})])
-    np.testing.assert_array_equal(st.cost, ref_pixel(left, right, 0, 3, lambda L, R, y, x, xr: abs(np.sum(win(left, y, x) < left[y, x]) - np.sum(win(right, y, xr) < right[y, xr])), 8.0))
+    np.testing.assert_array_equal(st.cost, ref_pixel(
+        left, right, 0, 3,
+        lambda L, R, y, x, xr: abs(np.sum(win(left, y, x) < left[y, x]) - np.sum(win(right, y, xr) < right[y, xr])),
+        8.0))
 
     def ordinal(L, R, y, x, xr):
         a, b = win(left, y, x), win(right, y, xr)
@@ -288,8 +293,9 @@ def weighted_census_reference(left, right, window, gamma, nd):
     out = np.full((h, w, nd), resolution * n, np.float64)
     for y in range(h):
         for x in range(w):
-            steps = np.array([np.abs(colour[min(max(y + dy, 0), h - 1), min(max(x + dx, 0), w - 1)] - colour[y, x]).max()
-                              for dy, dx in offsets()])
+            steps = np.array([
+                np.abs(colour[min(max(y + dy, 0), h - 1), min(max(x + dx, 0), w - 1)] - colour[y, x]).max()
+                for dy, dx in offsets()])
             q = np.rint(7 * np.exp(-(steps / gamma) ** 2))
             if q.sum() == 0:
                 q[:] = 7

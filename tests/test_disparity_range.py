@@ -137,7 +137,10 @@ def test_range_sources_option_calib_and_auto(run_cli, tmp_path):
     left, right, _ = slanted_pair(6.0, 18.0, seed=6)
     scene = _write_pair(tmp_path / "s", left, right)
     (scene / "calib.txt").write_text("cam0=[300 0 160; 0 300 120; 0 0 1]\nndisp=32\n")
-    plan = lambda *extra: json.loads(run_cli("match", scene, "-o", tmp_path / "o", "--dry-run", *extra).out)["items"][0]  # noqa: E731
+
+    def plan(*extra):
+        return json.loads(run_cli("match", scene, "-o", tmp_path / "o", "--dry-run", *extra).out)["items"][0]
+
     assert (plan()["range_source"], plan()["ndisp"]) == ("calib.txt", 32)
     assert (plan("--ndisp", "24")["range_source"], plan("--ndisp", "24")["ndisp"]) == ("option", 24)
     assert plan("--ndisp", "auto")["range_source"] == "estimated"
@@ -146,7 +149,8 @@ def test_range_sources_option_calib_and_auto(run_cli, tmp_path):
     r = run_cli("match", scene, "-o", tmp_path / "o2", "--ndisp", "auto")
     assert r.code == 0, r.err
     params = json.loads((tmp_path / "o2" / "s" / "params.json").read_text())
-    assert params["range"]["source"] == "estimated" and params["min_disp"] <= 6 and params["min_disp"] + params["ndisp"] > 18
+    assert params["range"]["source"] == "estimated"
+    assert params["min_disp"] <= 6 and params["min_disp"] + params["ndisp"] > 18
 
 
 def test_misaligned_pair_warns_and_fails_on_request(run_cli, tmp_path):
@@ -190,7 +194,8 @@ def test_rows_measured_once_per_pair(run_cli, tmp_path, monkeypatch):
     assert r.code == 0 and calls == [] and "rows not aligned" not in r.err
     assert alignment["source"] == "row_align" and alignment["aligned"] is True and alignment["max_offset"] < 0.5
     # A fit that is no measurement (too few tracks for it) falls back to the sparse matches.
-    r = run_cli("match", scene, "-o", tmp_path / "o1", "--ndisp", "32", "--set", "preprocess.row_align.min_tracks=100000")
+    r = run_cli("match", scene, "-o", tmp_path / "o1", "--ndisp", "32",
+                "--set", "preprocess.row_align.min_tracks=100000")
     params = json.loads((tmp_path / "o1" / "flat" / "params.json").read_text())
     assert r.code == 0 and len(calls) == 1 and params["stage_notes"]["row_align"]["measured"] is False
     assert params["alignment"]["source"] == "sparse matches" and params["alignment"]["aligned"] is True
@@ -204,13 +209,15 @@ def test_two_files_of_a_scene_folder_are_that_scene(run_cli, tmp_path):
     left, right, _ = slanted_pair(6.0, 18.0, seed=8)
     scene = _write_pair(tmp_path / "Bench", left, right)
     (scene / "calib.txt").write_text("cam0=[300 0 160; 0 300 120; 0 0 1]\nndisp=40\n")
-    item = json.loads(run_cli("match", scene / "im0.png", scene / "im1.png", "-o", tmp_path / "o", "--dry-run").out)["items"][0]
+    r = run_cli("match", scene / "im0.png", scene / "im1.png", "-o", tmp_path / "o", "--dry-run")
+    item = json.loads(r.out)["items"][0]
     assert item["name"] == "Bench" and item["ndisp"] == 40 and item["inputs"]["calib"].endswith("calib.txt")
     loose = tmp_path / "loose"
     loose.mkdir()
     for name in ("a.png", "b.png"):
         shutil.copy(scene / "im0.png", loose / name)
-    item = json.loads(run_cli("match", loose / "a.png", loose / "b.png", "-o", tmp_path / "o", "--dry-run").out)["items"][0]
+    r = run_cli("match", loose / "a.png", loose / "b.png", "-o", tmp_path / "o", "--dry-run")
+    item = json.loads(r.out)["items"][0]
     assert item["name"] == "a" and item["range_source"] == "estimated"
 
 

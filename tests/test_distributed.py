@@ -11,15 +11,14 @@ import threading
 import time
 from pathlib import Path
 
+import distributed  # the test extra installs Dask
 import numpy as np
 import pytest
 
-from stereocli.jobs.executors import run_batch
 from stereocli.io.images import write_image
 from stereocli.io.pfm import read_pfm
+from stereocli.jobs.executors import run_batch
 from stereocli.synth.scenes import write_scene
-
-import distributed  # noqa: E402  (the test extra installs Dask)
 
 # Data outputs that must be byte-identical (time.txt and params.json hold timings).
 DATA_FILES = ("disp0.pfm", "disp0.png", "disp1.pfm")

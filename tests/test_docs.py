@@ -6,8 +6,8 @@ import importlib.util
 import re
 
 import pytest
-from conftest import REPO
 
+from conftest import REPO
 from stereocli import registry
 
 #: Words that narrate development instead of describing the tool.

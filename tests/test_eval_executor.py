@@ -13,6 +13,7 @@ import pytest
 from stereocli.evaluation import api, folders
 from stereocli.jobs import evaluate as jobs_evaluate
 from stereocli.io.pfm import read_pfm, write_pfm
+from stereocli.jobs import evaluate as jobs_evaluate
 
 # GT scenes: the bundled synthetic samples (Middlebury 2014 layout, every GT pixel known), plus
 # a copy of "planes" named Playroom so the MiddEval3 weight 0.5 enters the average.

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from local_scene import scene
-from stereocli.matching.config import build_config, validate
 from stereocli.matching import pipeline
+from stereocli.matching.config import build_config, validate
 from stereocli.matching.kernels import costs as kl
 from stereocli.matching.kernels.costs import mask_invalid_right
 from stereocli.matching.kernels.fused_sad import sad_wta

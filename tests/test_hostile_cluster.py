@@ -15,12 +15,11 @@ import threading
 import time
 from pathlib import Path
 
+import distributed  # the test extra installs Dask
 import psutil
 import pytest
 
 from conftest import REPO, assert_clean, two_scenes
-
-import distributed  # noqa: E402  (the test extra installs Dask)
 
 FAST = ("-c", "fast")
 CLUSTER = """

@@ -208,7 +208,8 @@ def test_error_maps_of_a_scene_named_dot_dot_stay_inside_their_folder(run_cli, t
     r = run_cli("eval", results / "planes" / "disp0.pfm", gt / "planes" / "sub" / "..", "--error-maps", work / "maps")
     assert r.code == 0, r.err
     assert sorted(p.name for p in work.iterdir()) == ["maps"]
-    assert sorted(p.name for p in (work / "maps" / "__").iterdir()) == ["bad.png", "disparity.png", "error.png", "gt.png"]
+    maps = sorted(p.name for p in (work / "maps" / "__").iterdir())
+    assert maps == ["bad.png", "disparity.png", "error.png", "gt.png"]
 
 
 def test_a_symlinked_pair_folder_leading_out_of_outdir_is_refused(run_cli, tmp_path, scenes):

@@ -20,13 +20,12 @@ import sys
 import time
 from pathlib import Path
 
+import distributed  # the test extra installs Dask
 import psutil
 import pytest
 
 from conftest import REPO, assert_clean, two_scenes
-
-import distributed  # noqa: E402  (the test extra installs Dask)
-from stereocli.jobs.match import strip_task  # noqa: E402  (before match_losing_a_strip_worker replaces it)
+from stereocli.jobs.match import strip_task  # before match_losing_a_strip_worker replaces it
 
 TESTS = Path(__file__).resolve().parent
 N = 6

@@ -121,7 +121,8 @@ def _interrupted_in_a_kernel(item):
     try:
         raise KeyboardInterrupt
     except KeyboardInterrupt:
-        raise SystemError("CPUDispatcher(<function kernel>) returned a result with an exception set")
+        # no `from`: CPython makes the interrupt the context, not the cause
+        raise SystemError("CPUDispatcher(<function kernel>) returned a result with an exception set")  # noqa: B904
 
 
 def test_an_interrupt_inside_a_kernel_stops_the_batch_not_just_the_item(tmp_path):

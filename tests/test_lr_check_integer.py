@@ -8,8 +8,8 @@ import pytest
 
 from local_scene import scene
 from stereocli import registry
-from stereocli.matching.config import validate
 from stereocli.errors import ConfigError
+from stereocli.matching.config import validate
 from stereocli.matching.kernels.maps import lr_check_onto
 from stereocli.matching.pipeline import match_pair, prepare
 from stereocli.matching.state import MatchState

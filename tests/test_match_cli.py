@@ -14,9 +14,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import two_scenes
 from stereocli.io.images import write_image
 from stereocli.io.pfm import read_pfm
-from conftest import two_scenes
 
 
 @pytest.fixture(scope="module")
@@ -79,7 +79,8 @@ def test_range_from_options_or_calib(run_cli, tmp_path, small_scenes):
     shutil.copy(small_scenes / "planes" / "im1.png", pair / "r.png")
     # Neither an option nor a calib.txt: the range is estimated from the images.
     r = run_cli("match", pair / "l.png", pair / "r.png", "-o", tmp_path / "o")
-    assert r.code == 0 and json.loads((tmp_path / "o" / "l" / "params.json").read_text())["range"]["source"] == "estimated"
+    assert r.code == 0
+    assert json.loads((tmp_path / "o" / "l" / "params.json").read_text())["range"]["source"] == "estimated"
     r = run_cli("match", pair / "l.png", pair / "r.png", "-o", tmp_path / "o2", "--ndisp", "48")
     assert r.code == 0 and (tmp_path / "o2" / "l" / "disp0.pfm").is_file()
     assert json.loads((tmp_path / "o2" / "l" / "params.json").read_text())["ndisp"] == 48

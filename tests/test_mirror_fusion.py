@@ -136,7 +136,8 @@ def test_the_compiled_fusion_equals_its_definition(seed):
 def test_the_compiled_fusion_on_a_one_column_map():
     disparity = np.array([[0.0], [0.5], [INF]], np.float32)
     right_map = np.array([[1.0], [0.0], [0.0]], np.float32)
-    np.testing.assert_array_equal(fuse_with_mirrored(disparity, right_map, 2.0), fuse_reference(disparity, right_map, 2.0))
+    np.testing.assert_array_equal(fuse_with_mirrored(disparity, right_map, 2.0),
+                                  fuse_reference(disparity, right_map, 2.0))
 
 
 # --- reassigning pixels the mirrored map contradicts ---------------------------------------

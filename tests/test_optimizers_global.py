@@ -12,8 +12,8 @@ import pytest
 from click.testing import CliRunner
 
 from stereocli import registry
-from stereocli.matching.config import build_config
 from stereocli.errors import ConfigError
+from stereocli.matching.config import build_config
 from stereocli.matching.kernels.dp import dp_occlusion, scanline_optimize, warp_to_right
 from stereocli.matching.pipeline import match_pair
 
@@ -134,7 +134,8 @@ def test_bp_is_exact_on_a_chain():
     kb.bp_iterate(cost, *msgs, wh, wv, 2.0, 2.0, 2 * w)
     bp_labels = np.argmin(kb.beliefs(cost, *msgs), axis=2)[0]
     so_labels, _ = scanline_optimize(cost, wh, 2.0, 2.0)
-    assert _so_energy(cost, bp_labels, wh, 2.0, 2.0) == pytest.approx(_so_energy(cost, so_labels[0], wh, 2.0, 2.0), abs=1e-4)
+    so_energy = _so_energy(cost, so_labels[0], wh, 2.0, 2.0)
+    assert _so_energy(cost, bp_labels, wh, 2.0, 2.0) == pytest.approx(so_energy, abs=1e-4)
 
 
 def test_gc_expansion_move_is_optimal():
@@ -163,7 +164,7 @@ def test_gc_expansion_move_is_optimal():
 
 def test_dp_alignment_is_ordered_and_consistent():
     left, right, gt, _ = step_scene()
-    from stereocli.matching.cost import census_cost, CensusParams
+    from stereocli.matching.cost import CensusParams, census_cost
     from stereocli.matching.state import MatchState
 
     state = MatchState(left, right, 0, 14)
@@ -238,7 +239,8 @@ def test_match_cli_runs_every_method(tmp_path, base_yaml):
     write_image(pair / "im1.png", np.rint(right).astype(np.uint8))
     for method in METHODS:
         out = tmp_path / method
-        r = CliRunner().invoke(cli, ["match", str(pair), "-o", str(out), "--ndisp", "14", "--config", base_yaml, "--set", f"optimizer.name={method}"])
+        r = CliRunner().invoke(cli, ["match", str(pair), "-o", str(out), "--ndisp", "14", "--config", base_yaml,
+                                     "--set", f"optimizer.name={method}"])
         assert r.exit_code == 0, (method, r.output)
         disp = read_pfm(next(out.rglob("disp0.pfm")))
         assert disp.shape == gt.shape and np.isfinite(disp).all()
@@ -262,7 +264,8 @@ def test_bp_on_tsukuba(shared_data, tmp_path):
     right = cv2.imread(str(folder / "im4.png"))[..., ::-1].copy()
     gt = cv2.imread(str(folder / "disp3.pgm"), cv2.IMREAD_UNCHANGED).astype(np.float32) / 16
     gt[gt == 0] = np.inf
-    sets = ["cost.name=bt", "cost.truncate=15", "optimizer.name=bp", "optimizer.smoothness=0.5", "optimizer.truncate=1.7"]
+    sets = ["cost.name=bt", "cost.truncate=15", "optimizer.name=bp", "optimizer.smoothness=0.5",
+            "optimizer.truncate=1.7"]
     dense = tmp_path / "dense.yaml"  # integer labels: no sub-pixel fit on raw BT costs
     dense.write_text("preprocess: []\naggregation: []\nrefinement: [{name: lr_check}, {name: median}, {name: fill}]\n")
     result = match_pair(left, right, build_config([str(dense)], sets), ndisp=16)

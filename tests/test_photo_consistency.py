@@ -9,12 +9,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from conftest import v2_bad1
+from local_scene import render
 from stereocli import registry
 from stereocli.matching.cost import box_mean_image
 from stereocli.matching.kernels import photo as kp
 from stereocli.matching.state import MatchState
-from conftest import v2_bad1
-from local_scene import render
 from test_kernels_sgm import on_one_and_two_threads
 
 INF = np.float32(np.inf)

@@ -23,7 +23,8 @@ def slanted_scene(h: int = 90, w: int = 120, seed: int = 0):
     x_r = x − d, so the right image at x_r samples the texture at x = (x_r + B·y + C)/(1 − A).
     """
     rng = np.random.default_rng(seed)
-    tex = cv2.resize(rng.random((h // 4 + 4, w // 4 + 4)).astype(np.float32) * 200 + 20, (w * 2, h * 2), interpolation=cv2.INTER_CUBIC)
+    tex = cv2.resize(rng.random((h // 4 + 4, w // 4 + 4)).astype(np.float32) * 200 + 20, (w * 2, h * 2),
+                     interpolation=cv2.INTER_CUBIC)
     ys, xs = np.mgrid[0:h, 0:w].astype(np.float32)
 
     def sample(x, y):  # texture coordinate -> value (texture upsampled ×2, offset keeps x>=0)
@@ -186,7 +187,8 @@ def test_local_consistency_removes_spikes_and_keeps_holes():
     disp[20, 30] = 1.0
     disp[30, 5] = np.inf
     state = _state(disp, image)
-    registry.get("refinement", "local_consistency").func(state, registry.get("refinement", "local_consistency").make_params({}))
+    local_consistency = registry.get("refinement", "local_consistency")
+    local_consistency.func(state, local_consistency.make_params({}))
     expected = np.full((h, w), 7.0, np.float32)
     expected[30, 5] = np.inf
     np.testing.assert_allclose(state.disparity, expected)
@@ -223,7 +225,8 @@ def local_consistency_reference(disp, left, right, min_disp, ndisp, radius, gamm
                     k = int(np.floor(dg - min_disp + 0.5))
                     if not 0 <= k < ndisp:
                         continue
-                    wgt = np.exp(-np.hypot(yy - y, xx - x) / gamma_s - np.abs(left[y, x] - left[yy, xx]).mean() / gamma_c)
+                    wgt = np.exp(-np.hypot(yy - y, xx - x) / gamma_s
+                                 - np.abs(left[y, x] - left[yy, xx]).mean() / gamma_c)
                     xf, xg = int(np.floor(x - dg + 0.5)), int(np.floor(xx - dg + 0.5))
                     inside = 0 <= xf < w and 0 <= xg < w
                     dt = np.abs(right[y, xf] - right[yy, xg]).mean() if inside else 255.0

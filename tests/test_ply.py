@@ -3,12 +3,11 @@
 from __future__ import annotations
 
 import numpy as np
+import plyfile  # the test extra installs it
 import pytest
 
 from stereocli.errors import DataError
 from stereocli.io.ply import write_ply
-
-import plyfile  # noqa: E402  (the test extra installs it)
 
 
 @pytest.mark.parametrize("ascii", [False, True])

@@ -8,8 +8,8 @@ import pytest
 
 from local_scene import run_stages, scene, wta
 from stereocli import registry
-from stereocli.matching.config import build_config
 from stereocli.errors import ConfigError
+from stereocli.matching.config import build_config
 from stereocli.matching.preprocess import match_histogram
 from stereocli.matching.state import MatchState
 

@@ -10,8 +10,14 @@ import pytest
 
 from stereocli.io.images import read_image, write_image
 from stereocli.io.middlebury import read_calib_txt
-from stereocli.rectification.uncalibrated import (UncalibratedRectification, _sample_disparity, disparity_to_original,
-                                            estimate_rectification, transform_points, warp_pair)
+from stereocli.rectification.uncalibrated import (
+    UncalibratedRectification,
+    _sample_disparity,
+    disparity_to_original,
+    estimate_rectification,
+    transform_points,
+    warp_pair,
+)
 from stereocli.synth.scenes import render, scene_surfaces
 
 
@@ -278,7 +284,8 @@ def warped_middlebury_case(folder, left_name: str, right_name: str, ndisp: int) 
     ra, rb = transform_points(rect.H0, a), transform_points(rect.H1, b)
     gt_dy = np.abs(ra[:, 1] - rb[:, 1])
     return {"dy_median": float(np.median(dy)), "dy_p90": float(np.percentile(dy, 90)), "sift_matches": len(dy),
-            "raw_dy_median": float(np.median(raw)), "raw_dy_p90": float(np.percentile(raw, 90)), "raw_matches": len(raw),
+            "raw_dy_median": float(np.median(raw)), "raw_dy_p90": float(np.percentile(raw, 90)),
+            "raw_matches": len(raw),
             "gt_dy_median": float(np.median(gt_dy)), "gt_dy_p90": float(np.percentile(gt_dy, 90)),
             "gt_min_disparity": float((ra[:, 0] - rb[:, 0]).min()),
             "bad2_original": evaluate_pair(original, gt).metrics["nonocc"]["bad2.0"],

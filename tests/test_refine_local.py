@@ -8,10 +8,10 @@ import pytest
 
 from local_scene import run_stages, scene
 from stereocli import registry
-from stereocli.matching.config import build_config
 from stereocli.errors import ConfigError
-from stereocli.matching.pipeline import match_pair
+from stereocli.matching.config import build_config
 from stereocli.matching.kernels.refine import single_matching_phase_kernel, weighted_median_at
+from stereocli.matching.pipeline import match_pair
 from stereocli.matching.state import MatchState
 
 INF = np.inf

@@ -14,7 +14,6 @@ from stereocli.matching.kernels import refine as kr
 from stereocli.matching.kernels import voting as kv
 from stereocli.matching.state import MatchState
 
-
 # --- pure-numpy references -------------------------------------------------------------------
 
 
@@ -240,8 +239,8 @@ def test_adcensus_preset_meets_tsukuba_target(shared_data):
     """The adcensus preset scores ≤ 1.5 % nonocc bad > 1 on Tsukuba (derived mask)."""
     import cv2
 
-    from stereocli.matching.config import build_config
     from stereocli.evaluation.metrics import derive_nonocc_mask, middlebury_stats
+    from stereocli.matching.config import build_config
     from stereocli.matching.pipeline import match_pair
 
     folder = shared_data / "middlebury2001" / "tsukuba"

@@ -8,12 +8,12 @@ import json
 import numpy as np
 import pytest
 
+from conftest import two_scenes
 from stereocli.matching.vertical_offset import VerticalOffset, fit_vertical_offset, resample_rows, track_rows
 from stereocli.io.images import read_image
 from stereocli.matching.config import build_config
 from stereocli.matching.pipeline import match_pair
 from stereocli.synth.scenes import render, scene_surfaces
-from conftest import two_scenes
 
 W, H = 320, 240
 
@@ -134,8 +134,8 @@ def test_rows_off_in_a_way_no_plane_describes_are_left_alone():
 @pytest.mark.slow
 def test_an_offset_beyond_max_offset_is_left_alone():
     scene = render(scene_surfaces("planes", W, H, seed=0), W, H, right_row_offset=1.5)
-    result = match_pair(scene["left"], scene["right"], build_config(["default"], ["preprocess.row_align.max_offset=1.0"]),
-                        ndisp=48)
+    config = build_config(["default"], ["preprocess.row_align.max_offset=1.0"])
+    result = match_pair(scene["left"], scene["right"], config, ndisp=48)
     note = result.notes["row_align"]
     assert note["applied"] is False and "max_offset" in note["reason"] and note["largest_px"] > 1.0
 
@@ -236,8 +236,8 @@ def test_the_default_gains_on_middeval3(shared_data, without_row_align):
         scene = load_scene(folder, resolution="Q")
         for key, config in (("with", default), ("without", without_row_align)):
             disparity = match_pair(left, right, config, ndisp=ndisp).disparity
-            results[key].append(evaluate_pair(disparity, scene, options=EvalOptions(resolution="Q", threshold_units="full"),
-                                              name=folder.name))
+            options = EvalOptions(resolution="Q", threshold_units="full")
+            results[key].append(evaluate_pair(disparity, scene, options=options, name=folder.name))
     with_, without = (weighted_average(results[k])["nonocc"]["bad2.0"] for k in ("with", "without"))
     assert with_ <= 19.5 and with_ <= without - 0.5, (with_, without)  # guards; the scores are in the scoreboard
 

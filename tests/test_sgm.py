@@ -6,8 +6,8 @@ import cv2
 import numpy as np
 import pytest
 
-from stereocli.matching.config import build_config
 from stereocli.errors import MemoryBudgetError
+from stereocli.matching.config import build_config
 from stereocli.matching.pipeline import match_pair
 
 MARGIN = 6  # window half-sizes and path start-up at the borders
@@ -158,7 +158,8 @@ def test_memory_estimate_counts_integer_census_volume_at_its_size(tmp_path):
 
     def bytes_per_cell(sets, files=()):
         config = build_config(list(files), sets)
-        return (estimate_memory(config, 10000, 100, 200) - estimate_memory(config, 10000, 100, 100)) / (10000 * 100 * 100)
+        return (estimate_memory(config, 10000, 100,
+                                200) - estimate_memory(config, 10000, 100, 100)) / (10000 * 100 * 100)
 
     assert bytes_per_cell([]) == pytest.approx(3.0, rel=0.01)
     assert bytes_per_cell(["cost.name=ad"]) == pytest.approx(5.0, rel=0.01)

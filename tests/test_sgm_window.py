@@ -8,9 +8,9 @@ import pytest
 
 from stereocli.matching.config import build_config
 from stereocli.matching.kernels import census as kc
-from stereocli.matching.kernels.costs import mask_invalid_right
 from stereocli.matching.kernels import sgm as ks
 from stereocli.matching.kernels import sgm_window as kw
+from stereocli.matching.kernels.costs import mask_invalid_right
 from stereocli.matching.optimize import sgm as osgm
 from stereocli.matching.pipeline import match_pair
 from stereocli.matching.state import MatchState

@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from stereocli.matching.config import build_config
 from stereocli.io.images import read_image
+from stereocli.matching.config import build_config
 from stereocli.matching.pipeline import finish, match_pair, prepare, run_strip, strip_input
 from stereocli.synth.scenes import write_scene
 

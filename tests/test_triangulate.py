@@ -12,8 +12,14 @@ from stereocli.errors import DataError
 from stereocli.io.calib import StereoCalibration, load_calibration, save_calibration
 from stereocli.io.middlebury import read_calib_txt
 from stereocli.io.pfm import read_pfm, write_pfm
-from stereocli.triangulation import (RectifiedGeometry, depth_from_disparity, geometry_from_calibration,
-                                   geometry_from_q, reproject_q, triangulate)
+from stereocli.triangulation import (
+    RectifiedGeometry,
+    depth_from_disparity,
+    geometry_from_calibration,
+    geometry_from_q,
+    reproject_q,
+    triangulate,
+)
 
 
 def _plane_scene():
@@ -150,7 +156,8 @@ def test_triangulate_cli_outputs(tmp_path, run_cli):
 def test_triangulate_errors(tmp_path, run_cli):
     geom, disp, _, _ = _plane_scene()
     write_pfm(tmp_path / "disp0.pfm", disp)
-    (tmp_path / "calib.txt").write_text("cam0=[500 0 159.5; 0 500 119.5; 0 0 1]\ncam1=[500 0 162.5; 0 500 119.5; 0 0 1]\n"
+    (tmp_path / "calib.txt").write_text("cam0=[500 0 159.5; 0 500 119.5; 0 0 1]\n"
+                                        "cam1=[500 0 162.5; 0 500 119.5; 0 0 1]\n"
                                         "doffs=3\nbaseline=100\nwidth=320\nheight=240\nndisp=64\n")
     cv2.imwrite(str(tmp_path / "im0.png"), np.zeros((100, 100), np.uint8))
     res = run_cli("triangulate", tmp_path / "disp0.pfm", "-o", tmp_path / "c.ply")

@@ -28,8 +28,8 @@ def calibrate_folder(folder: str | os.PathLike, pattern: Pattern, options: Calib
 
     pairs = find_calibration_pairs(folder)
     if swap:
-        pairs = [(n, r, l) for n, l, r in pairs]
-    paths = [p for _, l, r in pairs for p in (l, r)]
+        pairs = [(n, right, left) for n, left, right in pairs]
+    paths = [p for _, left, right in pairs for p in (left, right)]
     cache_warnings: list[str] = []
     detections = detect_all(paths, pattern, detector=detector, jobs=jobs, cache=cache, progress=progress,
                             warnings=cache_warnings)
@@ -58,25 +58,26 @@ def calibrate_pairs(pairs: list, pattern: Pattern, options: CalibOptions | None 
     from ..errors import DataError
     from .pattern import detect
 
-    named, arrays = [], {}
+    named: list[tuple[str, str, str]] = []
+    arrays = {}
     for i, pair in enumerate(pairs):
         try:
             left, right = pair
         except (TypeError, ValueError):
             raise DataError(f"calibration pair {i}: expected (left, right)") from None
-        keys = []
+        keys: list[str] = []
         for side, image in (("left", left), ("right", right)):
             if isinstance(image, (str, os.PathLike)):
                 keys.append(str(image))
             else:
                 keys.append(f"pair{i}/{side}")
                 arrays[keys[-1]] = image
-        named.append((f"pair{i}", *keys))
+        named.append((f"pair{i}", keys[0], keys[1]))
     if swap:
-        named = [(n, r, l) for n, l, r in named]
+        named = [(n, right, left) for n, left, right in named]
     if not named:
         raise DataError("no calibration pairs given")
-    paths = [p for _, l, r in named for p in (l, r) if p not in arrays]
+    paths = [p for _, left, right in named for p in (left, right) if p not in arrays]
     cache_warnings: list[str] = []
     detections = detect_all(paths, pattern, detector=detector, jobs=jobs, cache=cache, progress=progress,
                             warnings=cache_warnings)

@@ -46,7 +46,7 @@ class Detection:
                 "ids": None if self.ids is None else self.ids.tolist()}
 
     @classmethod
-    def from_json(cls, path: str, d: dict) -> "Detection":
+    def from_json(cls, path: str, d: dict) -> Detection:
         return cls(path=path, size=tuple(d["size"]), reason=d.get("reason", ""),
                    corners=None if d.get("corners") is None else np.asarray(d["corners"], dtype=np.float32),
                    ids=None if d.get("ids") is None else np.asarray(d["ids"], dtype=np.int32), cached=True)

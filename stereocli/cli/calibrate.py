@@ -8,9 +8,9 @@ from pathlib import Path
 
 import click
 
-from . import options
 from ..errors import ConfigError as usage_error  # one-line message, exit 2
 from ..errors import check_outputs_free, excerpt
+from . import options
 
 _SQUARE = re.compile(r"^\s*([0-9]*\.?[0-9]+(?:[eE][-+]?\d+)?)\s*([a-zA-Zµ]*)\s*$")
 
@@ -59,13 +59,15 @@ FORMAT_CHOICE = click.Choice(["opencv", "ros", "middlebury"])
 @click.option("--rational", is_flag=True, help="Rational distortion model k4..k6 (wide-angle lenses).")
 @click.option("--fisheye", is_flag=True, help="Fisheye (equidistant) model, k1..k4.")
 @click.option("--same-focal", is_flag=True, help="With --joint: both cameras share fx, fy.")
-@click.option("--joint", is_flag=True, help="Refine intrinsics in the stereo solve (default: fixed after per-camera calibration).")
+@click.option("--joint", is_flag=True,
+              help="Refine intrinsics in the stereo solve (default: fixed after per-camera calibration).")
 @click.option("--max-view-error", type=options.Finite(min=0, min_open=True), metavar="PX",
               help="Drop views whose RMS exceeds PX and recalibrate.")
 @click.option("--alpha", type=options.Finite(0, 1), default=0.0, show_default=True,
               help="Rectification alpha stored in the file (P1, P2, Q).")
 @click.option("--swap", is_flag=True, help="Exchange left and right (rig wired the other way round).")
-@click.option("--to", "out_format", type=FORMAT_CHOICE, default=None, help="Output format (default: from the extension).")
+@click.option("--to", "out_format", type=FORMAT_CHOICE, default=None,
+              help="Output format (default: from the extension).")
 @click.option("--report", "report_path", type=click.Path(dir_okay=False),
               help="JSON report path (default: OUTPUT stem + .report.json).")
 @click.option("--cache", "cache_path", type=click.Path(dir_okay=False),

@@ -7,7 +7,7 @@ import json
 import signal
 import sys
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Sequence
 
 import click
 
@@ -23,7 +23,7 @@ def unpaired_failures(problems: list[str]) -> list[ItemResult]:
 
 def run_batch_command(command: str, items: list[WorkItem], item_fn: Callable[[WorkItem], dict], *,
                       outdir: Path | None, config: dict | None, verbosity: int,
-                      extra_failures: list[ItemResult] = (), **batch_options) -> tuple[int, BatchResult]:
+                      extra_failures: Sequence[ItemResult] = (), **batch_options) -> tuple[int, BatchResult]:
     """Run a batch subcommand's items and report: hold ``outdir``'s lock (one run per output
     folder), start the run record, :func:`~stereocli.jobs.executors.run_batch` with
     ``batch_options``, then :func:`finish_batch` into ``outdir/run.json``.
@@ -47,7 +47,7 @@ def run_batch_command(command: str, items: list[WorkItem], item_fn: Callable[[Wo
 
 
 def finish_batch(result: BatchResult, record: RunRecord, record_path: Path | None, verbosity: int,
-                 extra_failures: list[ItemResult] = (), redone: dict[str, str] | None = None) -> int:
+                 extra_failures: Sequence[ItemResult] = (), redone: dict[str, str] | None = None) -> int:
     """Write the run record, report failures on stderr, return the exit code.
 
     ``redone`` maps the items ``--skip-existing`` ran again to why (their outputs were stale):

@@ -31,7 +31,8 @@ def find_samples(explicit: str | None) -> Path | None:
 @click.argument("outdir", type=click.Path(file_okay=False))
 @click.option("--samples", "samples_dir", type=click.Path(file_okay=False),
               help="Samples folder (default: ./samples, else generated into OUTDIR/samples).")
-@click.option("-c", "--config", "config_files", multiple=True, metavar="FILE|PRESET", help="Matching config for the match step.")
+@click.option("-c", "--config", "config_files", multiple=True, metavar="FILE|PRESET",
+              help="Matching config for the match step.")
 @options.verbose
 @click.pass_context
 def demo_cmd(ctx, outdir, samples_dir, config_files):
@@ -53,7 +54,8 @@ def demo_cmd(ctx, outdir, samples_dir, config_files):
     square = _square_size(truth)
     config_args = [a for c in config_files for a in ("-c", c)]
     steps = [
-        ["calibrate", samples / "rig", "-o", out / "calib.yml", "--pattern", "9x6", "--square", f"{square:g}m",  # the rendered rig is in metres
+        # the rendered rig is in metres
+        ["calibrate", samples / "rig", "-o", out / "calib.yml", "--pattern", "9x6", "--square", f"{square:g}m",
          "--overwrite"],
         ["rectify", samples / "raw" / "scene1", "--calib", out / "calib.yml", "-o", out / "rectified", "--overwrite"],
         ["match", samples / "scenes", out / "rectified", "-o", out / "disparity", "--overwrite", "--viz", *config_args],

@@ -62,12 +62,15 @@ def run_with_error_handling(cli: click.Group, argv: list[str] | None = None) -> 
     except click.exceptions.Exit as exc:
         return exc.exit_code
     except click.ClickException as exc:
-        exc.message = _short_values(exc.message)  # Click's own messages quote an option's value whole
+        # Click's own messages quote an option's value whole. (Click types `message` as Final, yet its
+        # exceptions are built to be shown after the fact: setting it is what show() reads.)
+        exc.message = _short_values(exc.message)  # type: ignore[misc]
         exc.show()
         return exc.exit_code
     except click.exceptions.Abort as exc:
-        if isinstance(exc.__cause__ or exc.__context__, KeyboardInterrupt):  # Click's name for an interrupt
-            return _interrupted(exc.__cause__ or exc.__context__)
+        cause = exc.__cause__ or exc.__context__
+        if isinstance(cause, KeyboardInterrupt):  # Click's name for an interrupt
+            return _interrupted(cause)
         click.echo("Aborted.", err=True)
         return EXIT_DATA
     except StereoError as exc:
@@ -116,5 +119,5 @@ def _interrupted(exc: KeyboardInterrupt) -> int:
 def usage_error(message: str) -> click.UsageError:
     """A Click usage error (exit 2) with our message."""
     err = click.UsageError(message)
-    err.exit_code = EXIT_USAGE
+    err.exit_code = EXIT_USAGE  # type: ignore[misc]  # Click types it per class; this instance's code is ours
     return err

@@ -24,7 +24,8 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
     "stages": ("stages", "stages_cmd", "List every registered stage and its parameters."),
     "config": ("config_cmd", "config_group", "Show the effective matching configuration."),
     "demo": ("demo", "demo_cmd", "Run the whole chain on the bundled samples and print the scores."),
-    "warmup": ("warmup", "warmup_cmd", "Compile the matching kernels ahead of the first run (Docker images, CI caches)."),
+    "warmup": ("warmup", "warmup_cmd",
+               "Compile the matching kernels ahead of the first run (Docker images, CI caches)."),
 }
 
 
@@ -91,7 +92,7 @@ COMPILE_NOTICE = ("stereocli: compiling the numba kernels that this preset or im
 def _on_first_compile(ctx: click.Context):
     """What to do when kernels compile: say so once, and warm up the first pair's config (at a
     compile during its matching: one during a pair's survey comes before it is known)."""
-    said = []
+    said: list[bool] = []
 
     def on_compile() -> bool:
         if not said:

@@ -19,7 +19,8 @@ from .common import print_json, run_batch_command, unpaired_failures
 @click.option("--ndisp", type=options.NDISP, metavar="N|auto",
               help="Number of disparities searched; 'auto' estimates each pair's range from its images "
                    "(default: calib.txt ndisp, else estimated).")
-@click.option("--min-disp", type=int, default=None, help="Smallest disparity searched, px (default 0; may be negative).")
+@click.option("--min-disp", type=int, default=None,
+              help="Smallest disparity searched, px (default 0; may be negative).")
 @click.option("--require-aligned", is_flag=True,
               help="Fail a pair whose rows are not aligned (else a warning): it needs rectifying first "
                    "(rectify --calib, or rectify --uncalibrated).")

@@ -7,10 +7,10 @@ from pathlib import Path
 
 import click
 
-from . import options
-from .common import print_json, run_batch_command, unpaired_failures
 from ..errors import ConfigError as usage_error  # one-line message, exit 2
 from ..errors import excerpt
+from . import options
+from .common import print_json, run_batch_command, unpaired_failures
 
 
 def _size(text: str | None) -> tuple[int, int] | None:

@@ -25,6 +25,7 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Sequence, cast
 
 import numpy as np
 
@@ -84,7 +85,7 @@ class Scene:
 
     @property
     def shape(self) -> tuple[int, int]:
-        return self.gt.shape  # type: ignore[return-value]
+        return cast("tuple[int, int]", self.gt.shape)
 
 
 def middeval3_weight(name: str) -> float:
@@ -340,8 +341,8 @@ def load_kitti(root: Path, name: str) -> Scene:
                         obj_map=obj if obj.is_file() else None)
 
 
-def _kitti_scene(name: str, paths: dict[str, Path], *, errors: list[tuple[str, str]] = (), notes: list[str] = (),
-                 left_image: Path | None = None, obj_map: Path | None = None) -> Scene:
+def _kitti_scene(name: str, paths: dict[str, Path], *, errors: Sequence[tuple[str, str]] = (),
+                 notes: Sequence[str] = (), left_image: Path | None = None, obj_map: Path | None = None) -> Scene:
     """A KITTI scene from its GT files by region (``errors``: regions whose GT is missing)."""
     maps = {region: _read_kitti_gt(p) for region, p in paths.items()}
     main = "all" if "all" in maps else "nonocc"

@@ -1,4 +1,5 @@
-"""Compiled kernels of the evaluation: KITTI background interpolation, z-buffered visibility for derived nonocc masks."""
+"""Compiled kernels of the evaluation: KITTI background interpolation, z-buffered visibility for derived
+nonocc masks."""
 
 from __future__ import annotations
 

@@ -263,10 +263,11 @@ def kitti_stats(
         for key, sel in (("D1-bg", obj == 0), ("D1-fg", obj != 0)):
             m = int(sel.sum())
             out[key] = 100.0 * int(outlier[sel].sum()) / m if m else None
-    out["density"] = 100.0 * int(orig_valid.sum()) / n if n else None
+    density = 100.0 * int(orig_valid.sum()) / n if n else None
+    out["density"] = density
     for t in thresholds:
         out[threshold_key(t)] = 100.0 * int(np.count_nonzero(err > np.float32(t))) / n if n else None
-    out["invalid"] = 100.0 - out["density"] if n else None  # type: ignore[operator]
+    out["invalid"] = 100.0 - density if density is not None else None
     out.update(_summary(err[np.isfinite(err)], quantiles))
     return out
 

@@ -30,7 +30,7 @@ def metric_columns(report: EvalReport) -> list[str]:
         for values in s.metrics.values():
             if values:
                 present.update(values)
-    cols = [k for k in ("D1", "D1-bg", "D1-fg", "density") if k in present]
+    cols: list[str] = [k for k in ("D1", "D1-bg", "D1-fg", "density") if k in present]
     cols += [threshold_key(t) for t in report.thresholds]
     cols += ["invalid", "avgerr", "rms"] + [quantile_key(q) for q in report.quantiles]
     return [c for c in cols if c in present]
@@ -112,7 +112,7 @@ def format_text(report: EvalReport) -> str:
 
 
 def _region_note(report: EvalReport, region: str) -> str:
-    notes = {s.mask_notes.get(region) for s in report.scenes if s.mask_notes.get(region)}
+    notes = {note for s in report.scenes if (note := s.mask_notes.get(region))}
     if not notes:
         return ""
     return "  [" + "; ".join(sorted(notes)) + "]"

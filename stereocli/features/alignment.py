@@ -6,8 +6,9 @@ on real rectified data). A vertical shift between the views shows as a constant 
 small rotation or scale difference as a vertical disparity that varies linearly across the
 image. So a robust plane ``dy = a + b·x + c·y`` is fitted to the matches, and the pair counts
 as misaligned when that plane departs from zero by more than ``threshold`` px at one of the
-matches it holds (``max_offset``; evaluated where there are matches, never extrapolated). The plane is found by RANSAC (the largest set of matches within
-:data:`INLIER_PX` of a plane through three of them), so scattered mismatches do not tilt it.
+matches it holds (``max_offset``; evaluated where there are matches, never extrapolated). The
+plane is found by RANSAC (the largest set of matches within :data:`INLIER_PX` of a plane through
+three of them), so scattered mismatches do not tilt it.
 Repeated texture (a calibration board filling the view) can still pair many points one period
 apart, consistently enough to form a plane of their own; so when the matches on the rows
 (|dy| ≤ :data:`INLIER_PX`) are at least half as many as those on the best plane, the plane is
@@ -52,7 +53,7 @@ class RowAlignment:
     @property
     def aligned(self) -> bool:
         """True unless the measurement shows rows out of line (unmeasured counts as aligned)."""
-        return not self.measured or self.max_offset <= self.threshold
+        return self.max_offset is None or self.max_offset <= self.threshold
 
     def describe(self) -> str:
         if not self.measured:

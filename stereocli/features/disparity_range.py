@@ -94,7 +94,7 @@ def _shrink(image: np.ndarray, scale: int) -> np.ndarray:
 def _textured(image: np.ndarray) -> np.ndarray:
     """(H, W) bool: pixels whose 5×5 neighbourhood varies by more than one grey level (RMS).
     Elsewhere every disparity matches equally well, whatever the checks say."""
-    grey = image if image.ndim == 2 else image[..., :3] @ np.float32([0.299, 0.587, 0.114])
+    grey = image if image.ndim == 2 else image[..., :3] @ np.array([0.299, 0.587, 0.114], np.float32)
     grey = np.ascontiguousarray(grey, dtype=np.float32)
     mean = cv2.boxFilter(grey, -1, (5, 5))
     variance = cv2.boxFilter(grey * grey, -1, (5, 5)) - mean * mean

@@ -92,8 +92,8 @@ def match_points(left: np.ndarray, right: np.ndarray, *, left_valid: np.ndarray 
     good = (best < RATIO * second) & (nearest_ba[nearest_ab] == query)  # distinctive and mutual
     if not good.any():
         return PointMatches(empty, empty, len(keys_a))
-    pa = np.float32([keys_a[i].pt for i in query[good]]).reshape(-1, 1, 2)
-    pb = np.float32([keys_b[j].pt for j in nearest_ab[good]]).reshape(-1, 1, 2)
+    pa = np.array([keys_a[i].pt for i in query[good]], np.float32).reshape(-1, 1, 2)
+    pb = np.array([keys_b[j].pt for j in nearest_ab[good]], np.float32).reshape(-1, 1, 2)
     criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.01)
     refined, found, _ = cv2.calcOpticalFlowPyrLK(a, b, pa, pb.copy(), winSize=(11, 11), maxLevel=1,
                                                  criteria=criteria, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)

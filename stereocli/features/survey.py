@@ -20,8 +20,8 @@ import numpy as np
 
 from ..errors import DataError
 
-__all__ = ["RECTIFY_FIRST", "ROWS_NOT_ALIGNED", "check_range_meets_image", "measures_rows", "rows_corrected", "rows_from_match",
-           "survey_pair"]
+__all__ = ["RECTIFY_FIRST", "ROWS_NOT_ALIGNED", "check_range_meets_image", "measures_rows", "rows_corrected",
+           "rows_from_match", "survey_pair"]
 
 #: The survey's warning for a pair whose rows are off by more than the alignment threshold, and
 #: its advice (replaced by what ``row_align`` did when the matching corrected the rows).

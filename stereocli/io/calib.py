@@ -31,6 +31,7 @@ import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING, overload
 
 import numpy as np
 
@@ -38,6 +39,9 @@ from ..errors import ConfigError, DataError, excerpt
 from .atomic import atomic_path, write_text
 from .middlebury import MiddleburyCalib, format_calib_txt, read_calib_txt
 from .text import check_text_size, read_text_limited
+
+if TYPE_CHECKING:
+    from numpy.typing import ArrayLike
 
 OPENCV_SUFFIXES = (".yml", ".yaml", ".xml", ".json")
 FORMATS = ("opencv", "ros", "middlebury")
@@ -84,13 +88,12 @@ class StereoCalibration:
     extra: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        f64 = lambda a, shape=None: None if a is None else np.asarray(a, dtype=np.float64).reshape(shape or np.shape(a))  # noqa: E731
-        self.K1, self.K2 = f64(self.K1, (3, 3)), f64(self.K2, (3, 3))
-        self.D1, self.D2 = f64(self.D1).ravel(), f64(self.D2).ravel()
-        self.R, self.T = f64(self.R, (3, 3)), f64(self.T).ravel()
+        self.K1, self.K2 = _float64(self.K1, (3, 3)), _float64(self.K2, (3, 3))
+        self.D1, self.D2 = _float64(self.D1).ravel(), _float64(self.D2).ravel()
+        self.R, self.T = _float64(self.R, (3, 3)), _float64(self.T).ravel()
         for key, shape in (("E", (3, 3)), ("F", (3, 3)), ("R1", (3, 3)), ("R2", (3, 3)), ("P1", (3, 4)),
                            ("P2", (3, 4)), ("Q", (4, 4))):
-            setattr(self, key, f64(getattr(self, key), shape))
+            setattr(self, key, _float64(getattr(self, key), shape))
         self.image_size = (int(self.image_size[0]), int(self.image_size[1]))
         if self.rectified_size is not None:
             self.rectified_size = (int(self.rectified_size[0]), int(self.rectified_size[1]))
@@ -111,6 +114,15 @@ class StereoCalibration:
     @property
     def is_rectified(self) -> bool:
         return self.P1 is not None and self.P2 is not None
+
+
+@overload
+def _float64(a: None, shape: tuple[int, ...] | None = None) -> None: ...
+@overload
+def _float64(a: ArrayLike, shape: tuple[int, ...] | None = None) -> np.ndarray: ...
+def _float64(a, shape=None):
+    """``a`` as a float64 array of ``shape`` (default: its own); None stays None."""
+    return None if a is None else np.asarray(a, dtype=np.float64).reshape(shape or np.shape(a))
 
 
 def skew(t: np.ndarray) -> np.ndarray:
@@ -404,9 +416,9 @@ def to_middlebury(calib: StereoCalibration, *, ndisp: int = 0) -> MiddleburyCali
     The baseline is converted to millimetres when ``units`` is a known length unit; otherwise
     it stays in the calibration's unit and ``units=`` records it in the file.
     """
-    if not calib.is_rectified:
-        raise DataError("calib.txt describes a rectified pair: rectify the calibration first (P1, P2 missing)")
     P1, P2 = calib.P1, calib.P2
+    if P1 is None or P2 is None:  # not calib.is_rectified
+        raise DataError("calib.txt describes a rectified pair: rectify the calibration first (P1, P2 missing)")
     if abs(P1[1, 2] - P2[1, 2]) > 1e-6 or abs(P1[0, 3]) > 1e-9 or abs(P2[1, 3]) > 1e-9:
         raise DataError("calib.txt needs a horizontal rectified rig (P2 shifted along x only)")
     baseline = -P2[0, 3] / P2[0, 0]

@@ -9,6 +9,7 @@ calibration fits the pairs it was made from. The batch commands name each such f
 from __future__ import annotations
 
 import os
+from typing import Literal
 
 #: What a viewer does to the stored pixels for each EXIF orientation (tag 274) but 1 (none).
 EXIF_ORIENTATIONS = {2: "mirrored", 3: "turned 180°", 4: "flipped upside down", 5: "transposed",
@@ -40,7 +41,8 @@ def _tiff_orientation(fh, base: int) -> int | None:
     """The orientation tag of the first image directory of the TIFF structure at ``base``."""
     fh.seek(base)
     header = fh.read(8)
-    order = {b"II": "little", b"MM": "big"}.get(header[:2])
+    orders: dict[bytes, Literal["little", "big"]] = {b"II": "little", b"MM": "big"}
+    order = orders.get(header[:2])
     if order is None or len(header) < 8:
         return None
     fh.seek(base + int.from_bytes(header[4:8], order))

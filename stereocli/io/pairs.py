@@ -32,9 +32,11 @@ A pair's name is its output folder's name (``OUTDIR/<name>/``), made safe by :fu
 
 from __future__ import annotations
 
+import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
+from typing import cast
 
 from ..errors import DataError
 from .images import IMAGE_SUFFIXES
@@ -149,9 +151,9 @@ def _folder_key(stem: str, side: str) -> str:
     for m in _SIDE_WORD.finditer(stem):
         if m.group(1).lower() == side:
             return _without(stem, m.start(), m.end()) or stem
-    m = _SIDE_LETTER[side].search(stem)
-    if m:
-        return (stem[: m.start()] + stem[m.end():]).strip(_SEPARATORS) or stem
+    letter = _SIDE_LETTER[side].search(stem)
+    if letter:
+        return (stem[: letter.start()] + stem[letter.end():]).strip(_SEPARATORS) or stem
     return stem
 
 
@@ -201,7 +203,7 @@ def pair_side_word_files(folder: Path, images: list[Path]) -> tuple[list[StereoI
     """Pair ``left*``/``right*`` files of one folder by the stem without the side word."""
     by_side: dict[str, list[Path]] = {"left": [], "right": []}
     for p in _side_word_files(images):
-        by_side[side_key(p.stem)[0]].append(p)
+        by_side[cast(str, side_key(p.stem)[0])].append(p)  # _side_word_files keeps stems with a side word
     lefts = _keyed(by_side["left"], lambda p: side_key(p.stem)[1])
     rights = _keyed(by_side["right"], lambda p: side_key(p.stem)[1])
     return _pair_by_key(lefts, rights, str(folder), str(folder))
@@ -319,7 +321,7 @@ def _discover_folder(folder: Path) -> tuple[list[StereoInput], list[str]]:
     subs = _subfolders(folder)
     kind = layouts[0][0] if layouts else None
     if kind == "scene":
-        return [scene_pair(folder)], []
+        return [cast(StereoInput, scene_pair(folder))], []  # a "scene" layout is a scene_pair
     if kind == "side-word files":
         pairs, problems = pair_side_word_files(folder, images)
         side = set(_side_word_files(images))
@@ -369,7 +371,7 @@ def _pairs_by_itself(folder: Path) -> bool:
 
 # --------------------------------------------------------------------------- calibration photos
 
-def find_calibration_pairs(folder: str | Path) -> list[tuple[str, str, str]]:
+def find_calibration_pairs(folder: str | os.PathLike) -> list[tuple[str, str, str]]:
     """``(name, left_path, right_path)`` of the photo pairs in ``folder`` (the same layouts and
     names as :func:`discover_pairs`), sorted naturally by name.
 

@@ -8,6 +8,7 @@ and frame, so a cloud file explains itself.
 from __future__ import annotations
 
 import os
+from typing import cast
 
 import numpy as np
 
@@ -37,7 +38,8 @@ def write_ply(path: str | os.PathLike, points: np.ndarray, *, colors: np.ndarray
     if not np.isfinite(pts).all():
         raise DataError(f"{path}: refusing to write non-finite points to PLY (drop invalid points first)")
     n = pts.shape[0]
-    for name, arr, shape in (("colors", colors, (n, 3)), ("normals", normals, (n, 3)), ("confidence", confidence, (n,))):
+    for name, arr, shape in (("colors", colors, (n, 3)), ("normals", normals, (n, 3)),
+                             ("confidence", confidence, (n,))):
         if arr is not None and np.shape(arr) != shape:
             raise ValueError(f"{name} must have shape {shape}, got {np.shape(arr)}")
     dtype = _vertex_dtype(normals is not None, colors is not None, confidence is not None)
@@ -55,7 +57,8 @@ def write_ply(path: str | os.PathLike, points: np.ndarray, *, colors: np.ndarray
     header += [f"comment {c}".replace("\n", " ") for c in comments]
     header.append(f"element vertex {n}")
     names = {"<f4": "float", "u1": "uchar"}
-    for name in dtype.names:
+    fields = cast("tuple[str, ...]", dtype.names)  # a structured dtype has names
+    for name in fields:
         header.append(f"property {names[dtype[name].str.replace('|', '')]} {name}")
     header.append("end_header")
     head = ("\n".join(header) + "\n").encode("ascii")
@@ -63,8 +66,8 @@ def write_ply(path: str | os.PathLike, points: np.ndarray, *, colors: np.ndarray
         with open(tmp, "wb") as fh:
             fh.write(head)
             if ascii:
-                fmts = ["%.9g" if dtype[name].kind == "f" else "%d" for name in dtype.names]
-                cols = [vertices[name] for name in dtype.names]
+                fmts = ["%.9g" if dtype[name].kind == "f" else "%d" for name in fields]
+                cols = [vertices[name] for name in fields]
                 table = np.column_stack([c.astype(np.float64) for c in cols]) if n else np.zeros((0, len(cols)))
                 np.savetxt(fh, table, fmt=" ".join(fmts))
             else:

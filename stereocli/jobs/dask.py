@@ -44,7 +44,7 @@ import re
 import signal
 import time
 from pathlib import Path
-from typing import Any, Callable, Iterator, Sequence
+from typing import Any, Callable, Iterator, Sequence, cast
 
 from ..errors import EXIT_USAGE, ConfigError, excerpt
 from .items import ItemResult, WorkItem, finished_in_run, prepare_worker, run_one
@@ -80,7 +80,8 @@ def check_scheduler(scheduler: str | None) -> None:
         raise ConfigError("the dask executor needs --scheduler tcp://host:port (or --scheduler local)")
     m = _ADDRESS.match(scheduler)
     if scheduler != "local" and not m:
-        raise ConfigError(f"--scheduler {excerpt(scheduler)}: expected tcp://host:port (e.g. tcp://127.0.0.1:8786) or 'local'")
+        raise ConfigError(f"--scheduler {excerpt(scheduler)}: expected tcp://host:port "
+                          "(e.g. tcp://127.0.0.1:8786) or 'local'")
     require_distributed()
     if m and m.group(1):
         from distributed.comm.registry import backends
@@ -114,7 +115,8 @@ def probe_scheduler(scheduler: str, timeout: float | None = None) -> None:
     try:
         reply = asyncio.run(bounded())
     except (asyncio.TimeoutError, TimeoutError):
-        raise ConfigError(f"--scheduler {excerpt(scheduler)}: no Dask scheduler answered within {timeout:g} s") from None
+        raise ConfigError(f"--scheduler {excerpt(scheduler)}: no Dask scheduler answered "
+                          f"within {timeout:g} s") from None
     except Exception as exc:  # noqa: BLE001 - refused, reset, garbled handshake: not a scheduler
         raise ConfigError(f"--scheduler {excerpt(scheduler)}: not a reachable Dask scheduler "
                           f"({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else 'no detail'})") from None
@@ -320,7 +322,7 @@ def run_dask(items: Sequence[WorkItem], item_fn: Callable, verbose_errors: bool,
     require_distributed()
     if not items:
         return []
-    with connect(scheduler, jobs) as client:
+    with connect(cast(str, scheduler), jobs) as client:  # connect refuses a missing scheduler itself
         batch = _DaskBatch(client, list(items), item_fn, verbose_errors, retries,
                            record or (lambda k, res, final: None))
         try:
@@ -329,7 +331,7 @@ def run_dask(items: Sequence[WorkItem], item_fn: Callable, verbose_errors: bool,
             with contextlib.suppress(Exception):
                 client.cancel(list(batch.pending.futures), force=True)
             raise
-    return batch.results  # type: ignore[return-value]
+    return cast("list[ItemResult]", batch.results)  # every item has its result once run() returns
 
 
 class _DaskBatch:

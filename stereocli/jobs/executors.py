@@ -22,8 +22,18 @@ from dataclasses import replace
 from multiprocessing.reduction import ForkingPickler
 from typing import Callable, Iterable
 
-from .items import (BatchResult, ItemResult, WorkItem, check_outputs, finished_in_run, is_done, prepare_worker,
-                    remove_staging_roots, remove_temporaries, run_one)
+from .items import (
+    BatchResult,
+    ItemResult,
+    WorkItem,
+    check_outputs,
+    finished_in_run,
+    is_done,
+    prepare_worker,
+    remove_staging_roots,
+    remove_temporaries,
+    run_one,
+)
 
 EXECUTORS = ("inline", "process", "dask")
 
@@ -178,12 +188,13 @@ def _run_rounds(executor, items, todo, item_fn, jobs, verbose_errors, retries, r
         attempt += 1
         failed: list[int] = []
 
+        # done() runs within its round (the executor returns before the next), so it sees this round's values.
         def done(k: int, res: ItemResult) -> None:
-            i = pending[k]
-            res.attempts = attempt
-            retry = res.status == "failed" and attempt <= retries
+            i = pending[k]  # noqa: B023
+            res.attempts = attempt  # noqa: B023
+            retry = res.status == "failed" and attempt <= retries  # noqa: B023
             if retry:
-                failed.append(i)
+                failed.append(i)  # noqa: B023
             record(i, res, not retry)
 
         batch = [items[i] for i in pending]

@@ -73,7 +73,7 @@ class WorkItem:
             out["error"] = self.error
         return out
 
-    def absolute(self) -> "WorkItem":
+    def absolute(self) -> WorkItem:
         """The same item with absolute input and output paths (workers may run elsewhere)."""
         return replace(self, inputs={k: os.path.abspath(v) for k, v in self.inputs.items()},
                        outputs={k: os.path.abspath(v) for k, v in self.outputs.items()},
@@ -104,7 +104,7 @@ class ItemResult:
         return asdict(self)
 
     @classmethod
-    def failure(cls, item: WorkItem, message: str, exit_code: int = EXIT_DATA) -> "ItemResult":
+    def failure(cls, item: WorkItem, message: str, exit_code: int = EXIT_DATA) -> ItemResult:
         """A failed outcome for ``item`` that never produced a result (dead worker, lost task)."""
         return cls(item.name, "failed", message=label_message(item.name, message), inputs=item.inputs,
                    outputs=item.outputs, exit_code=exit_code)
@@ -259,10 +259,11 @@ def check_output_paths(items: list[WorkItem], outdir: str | os.PathLike | None =
 def finished_in_run(item: WorkItem) -> bool:
     """True when ``item``'s outputs were committed by the run ``item.run_id`` (its result may
     have been lost with an interrupted parent or a lost scheduler, its outputs were not)."""
-    if not (item.run_id and is_done(item)):
+    marker = item.marker
+    if not (item.run_id and is_done(item)) or marker is None:
         return False
     try:
-        return json.loads(item.marker.read_text()).get("run") == item.run_id
+        return json.loads(marker.read_text()).get("run") == item.run_id
     except (OSError, ValueError, AttributeError):
         return False
 
@@ -318,7 +319,7 @@ def _reraise_interrupt(exc: BaseException) -> None:
     from ..errors import Interrupted
     from ..process import interrupt_received
 
-    seen = exc
+    seen: BaseException | None = exc
     while seen is not None:
         if isinstance(seen, KeyboardInterrupt):
             raise seen from None
@@ -390,6 +391,8 @@ def _marker_outputs(marker: Path) -> list[str]:
 
 def _commit_folder(item: WorkItem, stage: Path, stamps: dict) -> None:
     folder, marker = Path(item.folder), item.marker
+    if marker is None:  # (never: only items with a folder are committed here)
+        raise ValueError(f"{item.name}: no output folder to commit into")
     written = sorted(p.name for p in stage.iterdir())
     write_text(stage / marker.name, json.dumps({"command": item.command, "outputs": written, "run": item.run_id,
                                                 "finished": time.strftime("%Y-%m-%dT%H:%M:%S%z"),

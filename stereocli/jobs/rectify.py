@@ -16,6 +16,7 @@ the estimated disparity range, but no baseline (``rectification=uncalibrated``),
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 from ..errors import DataError
 from ..io.pairs import StereoInput
@@ -151,7 +152,7 @@ def estimate_uncalibrated(items: list[WorkItem], *, per_pair: bool = False) -> d
     from ..rectification.uncalibrated import estimate_rectification
 
     groups = [[item] for item in items] if per_pair else [items]
-    rigs = []
+    rigs: list[dict[str, Any]] = []
     for group in groups:
         names = [item.name for item in group]
         try:

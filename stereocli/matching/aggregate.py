@@ -85,7 +85,8 @@ def box_aggregation(state: MatchState, p: BoxParams) -> None:
 
 @dataclass(frozen=True)
 class ShiftableParams:
-    window: tuple[int, int] = param((9, 9), "window (height, width), odd; each pixel takes the best of all windows of this size containing it", unit="px", low=1, high=101)
+    window: tuple[int, int] = param((9, 9), "window (height, width), odd; each pixel takes the best of all windows of "
+                                    "this size containing it", unit="px", low=1, high=101)
 
     def __post_init__(self):
         check_odd_window("aggregation.shiftable.window", self.window)
@@ -115,7 +116,8 @@ def shiftable(state: MatchState, p: ShiftableParams) -> None:
 @dataclass(frozen=True)
 class MultipleWindowsParams:
     window: tuple[int, int] = param((7, 7), "size of each sub-window (height, width), odd", unit="px", low=1, high=51)
-    windows: int = param(5, "5: centre + best 2 of 4 diagonal windows; 9: centre + best 4 of 8 surrounding windows", choices=(5, 9))
+    windows: int = param(5, "5: centre + best 2 of 4 diagonal windows; 9: centre + best 4 of 8 surrounding windows",
+                         choices=(5, 9))
 
     def __post_init__(self):
         check_odd_window("aggregation.multiple_windows.window", self.window)
@@ -150,7 +152,8 @@ class VariableWindowParams:
     min_size: int = param(3, "smallest window side, odd", unit="px", low=1, high=101)
     max_size: int = param(21, "largest window side, odd", unit="px", low=1, high=201)
     step: int = param(4, "size increment between candidate sides (even)", unit="px", low=2, high=50)
-    alpha: float = param(30.0, "penalty α in (Σ e + α)/|W|: larger prefers larger windows", unit="cost·px", low=0.0, high=1e6)
+    alpha: float = param(30.0, "penalty α in (Σ e + α)/|W|: larger prefers larger windows",
+                         unit="cost·px", low=0.0, high=1e6)
 
     def __post_init__(self):
         where = "aggregation.variable_window"
@@ -184,11 +187,15 @@ def variable_window(state: MatchState, p: VariableWindowParams) -> None:
 
 @dataclass(frozen=True)
 class CrossParams:
-    tau: float = param(20.0, "colour threshold τ: an arm stops at the first pixel differing by ≥ τ in any channel", unit="grey levels", low=1.0, high=255.0)
+    tau: float = param(20.0, "colour threshold τ: an arm stops at the first pixel differing by ≥ τ in any channel",
+                       unit="grey levels", low=1.0, high=255.0)
     max_arm: int = param(17, "longest arm L", unit="px", low=1, high=100)
     iterations: int = param(2, "aggregation passes (alternating horizontal-first and vertical-first)", low=1, high=8)
-    tau2: float = param(0.0, "two-threshold rule (Mei et al. 2011): beyond max_arm2 the colour must stay within tau2 of the pixel, and each step within tau of the previous arm pixel; 0 = single threshold (Zhang et al. 2009)", unit="grey levels", low=0.0, high=255.0)
-    max_arm2: int = param(17, "with tau2 > 0: arms longer than this (L2) need the stricter tau2", unit="px", low=1, high=100)
+    tau2: float = param(0.0, "two-threshold rule (Mei et al. 2011): beyond max_arm2 the colour must stay within tau2 "
+                        "of the pixel, and each step within tau of the previous arm pixel; 0 = single threshold "
+                        "(Zhang et al. 2009)", unit="grey levels", low=0.0, high=255.0)
+    max_arm2: int = param(17, "with tau2 > 0: arms longer than this (L2) need the stricter tau2",
+                          unit="px", low=1, high=100)
 
     def __post_init__(self):
         if self.tau2 > 0 and self.max_arm2 > self.max_arm:
@@ -238,9 +245,11 @@ def _window_offsets(radius_y: int, radius_x: int, stride: int = 1):
 @dataclass(frozen=True)
 class AdaptiveWeightsParams:
     window: int = param(35, "support window side, odd", unit="px", low=3, high=101)
-    gamma_c: float = param(10.0, "colour similarity scale γ_c (CIELab distance; larger = wider support across colour edges)", unit="Lab units", low=0.1, high=200.0)
+    gamma_c: float = param(10.0, "colour similarity scale γ_c (CIELab distance; larger = wider support across colour "
+                           "edges)", unit="Lab units", low=0.1, high=200.0)
     gamma_p: float = param(17.5, "proximity scale γ_p", unit="px", low=0.1, high=500.0)
-    min_weight: float = param(1e-4, "skip support pixels whose left weight is below this (speed; 0 = exact)", low=0.0, high=0.5)
+    min_weight: float = param(1e-4, "skip support pixels whose left weight is below this (speed; 0 = exact)",
+                              low=0.0, high=0.5)
 
     def __post_init__(self):
         if self.window % 2 == 0:
@@ -275,10 +284,13 @@ def adaptive_weights(state: MatchState, p: AdaptiveWeightsParams) -> None:
 @dataclass(frozen=True)
 class SegmentSupportParams:
     window: int = param(31, "support window side, odd", unit="px", low=3, high=101)
-    gamma_c: float = param(10.0, "colour scale γ_c for pixels outside the segment (CIELab)", unit="Lab units", low=0.1, high=200.0)
-    spatial_radius: int = param(7, "mean-shift spatial radius (cv2.pyrMeanShiftFiltering sp)", unit="px", low=1, high=50)
+    gamma_c: float = param(10.0, "colour scale γ_c for pixels outside the segment (CIELab)",
+                           unit="Lab units", low=0.1, high=200.0)
+    spatial_radius: int = param(7, "mean-shift spatial radius (cv2.pyrMeanShiftFiltering sp)",
+                                unit="px", low=1, high=50)
     color_radius: float = param(12.0, "mean-shift colour radius (sr)", unit="grey levels", low=1.0, high=255.0)
-    min_weight: float = param(1e-4, "skip support pixels whose left weight is below this (speed; 0 = exact)", low=0.0, high=0.5)
+    min_weight: float = param(1e-4, "skip support pixels whose left weight is below this (speed; 0 = exact)",
+                              low=0.0, high=0.5)
 
     def __post_init__(self):
         if self.window % 2 == 0:
@@ -317,7 +329,8 @@ def segment_support(state: MatchState, p: SegmentSupportParams) -> None:
 @dataclass(frozen=True)
 class FastBilateralParams:
     window: int = param(39, "support window side, odd", unit="px", low=3, high=151)
-    block: int = param(3, "block side: costs and colours are averaged per block, weights computed per block", unit="px", low=1, high=15)
+    block: int = param(3, "block side: costs and colours are averaged per block, weights computed per block",
+                       unit="px", low=1, high=15)
     gamma_c: float = param(5.0, "colour scale γ_c (CIELab)", unit="Lab units", low=0.1, high=200.0)
     gamma_p: float = param(17.5, "proximity scale γ_p", unit="px", low=0.1, high=500.0)
 
@@ -358,7 +371,8 @@ class LocallyConsistentParams:
     gamma_s: float = param(8.0, "proximity scale γ_s", unit="px", low=0.1, high=500.0)
     gamma_c: float = param(15.0, "colour scale γ_c (CIELab, both views)", unit="Lab units", low=0.1, high=500.0)
     gamma_t: float = param(10.0, "matching-cost scale γ_t", unit="grey levels", low=0.1, high=500.0)
-    truncate: float = param(30.0, "truncation T of the pixel AD in the plausibility", unit="grey levels", low=1.0, high=255.0)
+    truncate: float = param(30.0, "truncation T of the pixel AD in the plausibility",
+                            unit="grey levels", low=1.0, high=255.0)
 
     def __post_init__(self):
         if self.window % 2 == 0:
@@ -378,6 +392,8 @@ def locally_consistent(state: MatchState, p: LocallyConsistentParams) -> None:
     disparity field; O(window²) per pixel, independent of D. Range [0, 1]; points that no
     support asserts get cost 1 (invalid after WTA).
     """
+    if state.cost is None:  # (never: the pipeline runs a cost stage first)
+        raise RuntimeError("aggregation.locally_consistent: no cost volume")
     disp, _ = wta_left(state.cost, state.min_disp, np.float32(state.cost_max))
     disp_k = np.where(np.isfinite(disp), disp - state.min_disp, -1).astype(np.int32)
     left = np.ascontiguousarray(state.left if state.left.ndim == 3 else state.left[..., None], dtype=np.float32)
@@ -392,8 +408,12 @@ def locally_consistent(state: MatchState, p: LocallyConsistentParams) -> None:
 @dataclass(frozen=True)
 class GuidedFilterParams:
     radius: int = param(9, "box radius r of the guided filter (window 2r+1)", unit="px", low=1, high=50)
-    eps: float = param(1e-4, "regularisation ε for intensities on [0, 1] (larger = smoother, less edge-aware)", unit="(intensity/255)²", low=1e-8, high=1.0)
-    right_view: str = param("volume", "right-view disparity (when a later stage needs it, e.g. lr_check): 'volume' = read from this left-guided volume by the optimizer/pipeline; 'guided' = WTA of the right-referenced volume filtered with the right image as guide (Rhemann/Hosni; for the wta optimizer)", choices=("volume", "guided"))
+    eps: float = param(1e-4, "regularisation ε for intensities on [0, 1] (larger = smoother, less edge-aware)",
+                       unit="(intensity/255)²", low=1e-8, high=1.0)
+    right_view: str = param("volume", "right-view disparity (when a later stage needs it, e.g. lr_check): 'volume' = "
+                            "read from this left-guided volume by the optimizer/pipeline; 'guided' = WTA of the "
+                            "right-referenced volume filtered with the right image as guide (Rhemann/Hosni; for the "
+                            "wta optimizer)", choices=("volume", "guided"))
 
 
 @register("aggregation", "guided_filter", GuidedFilterParams)
@@ -434,7 +454,7 @@ def _guide(image: np.ndarray) -> np.ndarray:
     return (image if image.ndim == 3 else image[..., None]).astype(np.float32) / np.float32(255.0)
 
 
-def _guided_right_view(cost: np.ndarray, filt: "_GuidedFilter", min_disp: int, cost_max: float,
+def _guided_right_view(cost: np.ndarray, filt: _GuidedFilter, min_disp: int, cost_max: float,
                        right_valid: np.ndarray | None) -> np.ndarray:
     """WTA right-view disparity of the right-referenced volume filtered by ``filt``.
 

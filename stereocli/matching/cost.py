@@ -36,6 +36,8 @@ def run_cost_stage(state: MatchState, call) -> None:
     right pixel is outside ``state.right_valid`` the volume's maximum cost."""
     call.stage.func(state, call.params)
     if state.right_valid is not None:
+        if state.cost is None:
+            raise RuntimeError(f"cost.{call.stage.name}: left no cost volume")
         kl.mask_invalid_right(state.cost, state.right_valid, state.min_disp, np.float32(state.cost_max))
 
 
@@ -90,7 +92,8 @@ def box_mean_image(image: np.ndarray, radius_y: int, radius_x: int) -> np.ndarra
 
 @dataclass(frozen=True)
 class ADParams:
-    truncate: float = param(255.0, "truncate the absolute difference at this value (255 = no truncation)", unit="grey levels", low=1, high=255)
+    truncate: float = param(255.0, "truncate the absolute difference at this value (255 = no truncation)",
+                            unit="grey levels", low=1, high=255)
 
 
 @register("cost", "ad", ADParams)
@@ -107,7 +110,8 @@ def ad_cost(state: MatchState, p: ADParams) -> None:
 
 @dataclass(frozen=True)
 class TADParams:
-    truncate: float = param(20.0, "truncation of the absolute difference (lower = more robust to occlusions and noise, less discriminative)", unit="grey levels", low=1, high=255)
+    truncate: float = param(20.0, "truncation of the absolute difference (lower = more robust to occlusions and "
+                            "noise, less discriminative)", unit="grey levels", low=1, high=255)
 
 
 @register("cost", "tad", TADParams)
@@ -125,7 +129,8 @@ def tad_cost(state: MatchState, p: TADParams) -> None:
 
 @dataclass(frozen=True)
 class SDParams:
-    truncate: float = param(65025.0, "truncate the squared difference at this value (65025 = 255², no truncation)", unit="grey levels²", low=1, high=65025)
+    truncate: float = param(65025.0, "truncate the squared difference at this value (65025 = 255², no truncation)",
+                            unit="grey levels²", low=1, high=65025)
 
 
 @register("cost", "sd", SDParams)
@@ -174,8 +179,10 @@ def _windowed_truncated_ad_wta(state: MatchState, p, winner: bool) -> None:
 
 @dataclass(frozen=True)
 class WindowADParams:
-    window: tuple[int, int] = param((9, 9), "window (height, width), odd; larger = smoother and more reliable in weak texture, but fatter at depth edges", unit="px", low=1, high=101)
-    truncate: float = param(255.0, "truncate each pixel's |L − R| before summing (255 = none)", unit="grey levels", low=1, high=255)
+    window: tuple[int, int] = param((9, 9), "window (height, width), odd; larger = smoother and more reliable in weak "
+                                    "texture, but fatter at depth edges", unit="px", low=1, high=101)
+    truncate: float = param(255.0, "truncate each pixel's |L − R| before summing (255 = none)",
+                            unit="grey levels", low=1, high=255)
 
     def __post_init__(self):
         check_odd_window("cost.window", self.window)
@@ -218,7 +225,8 @@ def stad_cost(state: MatchState, p: STADParams) -> None:
 @dataclass(frozen=True)
 class SSDParams:
     window: tuple[int, int] = param((9, 9), "window (height, width), odd", unit="px", low=1, high=101)
-    truncate: float = param(65025.0, "per-pixel truncation of (L − R)² before summing (65025 = none)", unit="grey levels²", low=1, high=65025)
+    truncate: float = param(65025.0, "per-pixel truncation of (L − R)² before summing (65025 = none)",
+                            unit="grey levels²", low=1, high=65025)
 
     def __post_init__(self):
         check_odd_window("cost.window", self.window)
@@ -296,7 +304,8 @@ def _gradients(image: np.ndarray, both: bool) -> np.ndarray:
 @dataclass(frozen=True)
 class GradientParams:
     direction: str = param("xy", "derivatives compared: x only, or x and y", choices=("x", "xy"))
-    truncate: float = param(255.0, "truncation of the mean absolute gradient difference (255 = none)", unit="grey levels/px", low=0.1, high=255)
+    truncate: float = param(255.0, "truncation of the mean absolute gradient difference (255 = none)",
+                            unit="grey levels/px", low=0.1, high=255)
 
 
 @register("cost", "gradient", GradientParams)
@@ -364,8 +373,11 @@ def bt_cost(state: MatchState, p: BTParams) -> None:
 
 @dataclass(frozen=True)
 class CensusParams:
-    window: tuple[int, int] = param((7, 9), "census window (height, width), odd; at most 65 pixels", unit="px", low=1, high=15)
-    gamma_c: float = param(0.0, "colour-adaptive support: a bit weighs exp(−(Δ/γc)²), Δ the largest channel difference between its neighbour and the centre in the left image; 0: every bit weighs 1 (the Hamming distance)", unit="grey levels", low=0.0, high=1000.0)
+    window: tuple[int, int] = param((7, 9), "census window (height, width), odd; at most 65 pixels",
+                                    unit="px", low=1, high=15)
+    gamma_c: float = param(0.0, "colour-adaptive support: a bit weighs exp(−(Δ/γc)²), Δ the largest channel "
+                           "difference between its neighbour and the centre in the left image; 0: every bit weighs 1 "
+                           "(the Hamming distance)", unit="grey levels", low=0.0, high=1000.0)
 
     def __post_init__(self):
         check_odd_window("cost.window", self.window, 65)
@@ -462,10 +474,14 @@ def rank_cost(state: MatchState, p: RankParams) -> None:
 
 @dataclass(frozen=True)
 class ADCensusParams:
-    window: tuple[int, int] = param((7, 9), "census window (height, width), odd; at most 65 pixels", unit="px", low=1, high=15)
-    lambda_ad: float = param(10.0, "AD scale λ_AD (higher = less weight to colour)", unit="grey levels", low=0.1, high=1000)
-    lambda_census: float = param(30.0, "census scale λ_census (higher = less weight to census)", unit="bits", low=0.1, high=1000)
-    combine: str = param("exp", "exp: 2 − exp(−c_AD/λ_AD) − exp(−c_census/λ_census) (Mei et al.); sum: c_AD/λ_AD + c_census/λ_census", choices=("exp", "sum"))
+    window: tuple[int, int] = param((7, 9), "census window (height, width), odd; at most 65 pixels",
+                                    unit="px", low=1, high=15)
+    lambda_ad: float = param(10.0, "AD scale λ_AD (higher = less weight to colour)",
+                             unit="grey levels", low=0.1, high=1000)
+    lambda_census: float = param(30.0, "census scale λ_census (higher = less weight to census)",
+                                 unit="bits", low=0.1, high=1000)
+    combine: str = param("exp", "exp: 2 − exp(−c_AD/λ_AD) − exp(−c_census/λ_census) (Mei et al.); sum: c_AD/λ_AD + "
+                         "c_census/λ_census", choices=("exp", "sum"))
 
     def __post_init__(self):
         check_odd_window("cost.window", self.window, 65)
@@ -493,7 +509,8 @@ def ad_census_cost(state: MatchState, p: ADCensusParams) -> None:
 
 @dataclass(frozen=True)
 class OrdinalParams:
-    window: tuple[int, int] = param((7, 7), "window (height, width), odd; at most 225 pixels", unit="px", low=3, high=15)
+    window: tuple[int, int] = param((7, 7), "window (height, width), odd; at most 225 pixels",
+                                    unit="px", low=3, high=15)
 
     def __post_init__(self):
         check_odd_window("cost.window", self.window, 225)

@@ -49,8 +49,8 @@ def mi_table(left_bins: np.ndarray, right_bins: np.ndarray, disp: np.ndarray, bi
     xr = xs - np.floor(disp[ys, xs] + 0.5).astype(np.int64)
     ok = (xr >= 0) & (xr < w)
     ys, xs, xr = ys[ok], xs[ok], xr[ok]
-    joint = np.bincount(left_bins[ys, xs] * bins + right_bins[ys, xr], minlength=bins * bins)
-    joint = joint.reshape(bins, bins).astype(np.float64) + 1e-3  # keep log() finite
+    counts = np.bincount(left_bins[ys, xs] * bins + right_bins[ys, xr], minlength=bins * bins)
+    joint = counts.reshape(bins, bins).astype(np.float64) + 1e-3  # keep log() finite
     p = joint / joint.sum()
     eps = 1e-9
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Literal, cast
 
 import cv2
 import numpy as np
@@ -47,7 +47,8 @@ def no_preprocess(state: MatchState, params) -> None:
 
 @dataclass(frozen=True)
 class LoGParams:
-    sigma: float = param(1.0, "Gaussian scale of the Laplacian of Gaussian (larger = coarser band, less noise)", unit="px", low=0.3, high=20.0)
+    sigma: float = param(1.0, "Gaussian scale of the Laplacian of Gaussian (larger = coarser band, less noise)",
+                         unit="px", low=0.3, high=20.0)
     gain: float = param(1.0, "multiplier of the response before re-centring at 128", low=0.01, high=100.0)
 
 
@@ -120,7 +121,8 @@ def bilateral_subtraction(state: MatchState, p: BilateralSubtractionParams) -> N
 
 @dataclass(frozen=True)
 class XSobelParams:
-    cap: int = param(31, "clip the x-derivative to [-cap, cap] (OpenCV preFilterCap)", unit="grey levels", low=1, high=63)
+    cap: int = param(31, "clip the x-derivative to [-cap, cap] (OpenCV preFilterCap)",
+                     unit="grey levels", low=1, high=63)
 
 
 @register("preprocess", "xsobel", XSobelParams, traits=StageTraits(map_copies=3.5))
@@ -159,7 +161,8 @@ def match_histogram(source: np.ndarray, reference: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class HistogramParams:
-    reference: str = param("left", "which view keeps its histogram (the other is mapped onto it)", choices=("left", "right"))
+    reference: str = param("left", "which view keeps its histogram (the other is mapped onto it)",
+                           choices=("left", "right"))
 
 
 @register("preprocess", "histogram_matching", HistogramParams, traits=StageTraits(map_copies=10.5))
@@ -274,10 +277,16 @@ def remove_column_pattern(image: np.ndarray, amplitude: np.ndarray) -> np.ndarra
 
 @dataclass(frozen=True)
 class ColumnPatternParams:
-    min_amplitude: float = param(0.2, "a view whose median amplitude is below this is left as it is (photographs without the pattern measure 0.01–0.07)", unit="grey levels", low=0.0, high=50.0)
-    min_significance: float = param(3.0, "...and one whose amplitude is below this many times its own standard error (the scene's detail left in the column means: small or strongly textured views)", low=0.0, high=1000.0)
-    window: int = param(32, "columns over which the amplitude is averaged (it drifts slowly across a sensor); 0: one amplitude for the whole image", unit="px", low=0, high=100000)
-    clip: float = param(2.0, "the column estimate's clip: differences from its row neighbours beyond this count as this far, so that edges and strong texture do not sway it", unit="grey levels", low=0.1, high=255.0)
+    min_amplitude: float = param(0.2, "a view whose median amplitude is below this is left as it is (photographs "
+                                 "without the pattern measure 0.01–0.07)", unit="grey levels", low=0.0, high=50.0)
+    min_significance: float = param(3.0, "...and one whose amplitude is below this many times its own standard error "
+                                    "(the scene's detail left in the column means: small or strongly textured views)",
+                                    low=0.0, high=1000.0)
+    window: int = param(32, "columns over which the amplitude is averaged (it drifts slowly across a sensor); 0: one "
+                        "amplitude for the whole image", unit="px", low=0, high=100000)
+    clip: float = param(2.0, "the column estimate's clip: differences from its row neighbours beyond this count as "
+                        "this far, so that edges and strong texture do not sway it",
+                        unit="grey levels", low=0.1, high=255.0)
 
 
 @register("preprocess", "column_pattern", ColumnPatternParams,
@@ -328,20 +337,34 @@ def column_pattern(state: MatchState, p: ColumnPatternParams) -> None:
 
 @dataclass(frozen=True)
 class RowAlignParams:
-    model: str = param("plane", "vertical offset model: a plane (shift, rotation, scale difference) or a constant shift", choices=("plane", "constant"))
+    model: str = param("plane", "vertical offset model: a plane (shift, rotation, scale difference) or a constant "
+                       "shift", choices=("plane", "constant"))
     points: int = param(600, "corners of the left image tracked into the right one", low=10, high=100000)
     window: int = param(21, "Lucas–Kanade window side", unit="px", low=5, high=99)
-    sigma: float = param(3.0, "scale of the local brightness normalisation the tracking runs on (0 = raw grey)", unit="px", low=0.0, high=50.0)
-    min_tracks: int = param(30, "fewest surviving tracks to correct the pair at all (a plane needs three times as many)", low=3, high=100000)
-    max_offset: float = param(8.0, "largest correction: a larger fitted offset leaves the pair as it is (rectify it instead)", unit="px", low=0.0, high=50.0)
-    max_spread: float = param(0.5, "the tracks' robust standard deviation about the plane above which the pair is left as it is (its rows are off in a way a plane does not describe: rectify it)", unit="px", low=0.0, high=50.0)
-    min_offset: float = param(0.1, "smallest correction: a pair whose fitted offset stays below this everywhere is left as it is (the fit's own error on aligned pairs reaches 0.06 px, and resampling blurs a little)", unit="px", low=0.0, high=50.0)
-    reduce: int = param(2, "track on the images reduced by this factor (1: full resolution, four times the pixels, same MiddEval3 scores)", choices=(1, 2, 4))
-    min_pixels: int = param(0, "fewest pixels of the reduced images: smaller pairs track at half the factor, or at full resolution (a small image reduced 4x leaves too few corners)", low=0, high=10**9)
-    measure: bool = param(True, "track corners and fit the plane; false: apply offset, tilt_x and tilt_y as given (a rig's known rows, e.g. from an earlier pair's params.json), without tracking")
-    offset: float = param(0.0, "with measure: false, how far below its left-view row a point appears in the right view at the image centre", unit="px", low=-50.0, high=50.0)
-    tilt_x: float = param(0.0, "with measure: false, the change of that offset across the image width", unit="px", low=-50.0, high=50.0)
-    tilt_y: float = param(0.0, "with measure: false, the change of that offset across the image height", unit="px", low=-50.0, high=50.0)
+    sigma: float = param(3.0, "scale of the local brightness normalisation the tracking runs on (0 = raw grey)",
+                         unit="px", low=0.0, high=50.0)
+    min_tracks: int = param(30, "fewest surviving tracks to correct the pair at all (a plane needs three times as "
+                            "many)", low=3, high=100000)
+    max_offset: float = param(8.0, "largest correction: a larger fitted offset leaves the pair as it is (rectify it "
+                              "instead)", unit="px", low=0.0, high=50.0)
+    max_spread: float = param(0.5, "the tracks' robust standard deviation about the plane above which the pair is "
+                              "left as it is (its rows are off in a way a plane does not describe: rectify it)",
+                              unit="px", low=0.0, high=50.0)
+    min_offset: float = param(0.1, "smallest correction: a pair whose fitted offset stays below this everywhere is "
+                              "left as it is (the fit's own error on aligned pairs reaches 0.06 px, and resampling "
+                              "blurs a little)", unit="px", low=0.0, high=50.0)
+    reduce: int = param(2, "track on the images reduced by this factor (1: full resolution, four times the pixels, "
+                        "same MiddEval3 scores)", choices=(1, 2, 4))
+    min_pixels: int = param(0, "fewest pixels of the reduced images: smaller pairs track at half the factor, or at "
+                            "full resolution (a small image reduced 4x leaves too few corners)", low=0, high=10**9)
+    measure: bool = param(True, "track corners and fit the plane; false: apply offset, tilt_x and tilt_y as given (a "
+                          "rig's known rows, e.g. from an earlier pair's params.json), without tracking")
+    offset: float = param(0.0, "with measure: false, how far below its left-view row a point appears in the right "
+                          "view at the image centre", unit="px", low=-50.0, high=50.0)
+    tilt_x: float = param(0.0, "with measure: false, the change of that offset across the image width",
+                          unit="px", low=-50.0, high=50.0)
+    tilt_y: float = param(0.0, "with measure: false, the change of that offset across the image height",
+                          unit="px", low=-50.0, high=50.0)
 
 
 def _mirrored_row_align(p: RowAlignParams, note: dict | None) -> RowAlignParams:
@@ -385,10 +408,10 @@ def row_align(state: MatchState, p: RowAlignParams) -> None:
 
     h, w = state.shape
     if not p.measure:
-        plane = VerticalOffset(p.offset, p.tilt_x, p.tilt_y, w, h, 0, 0.0)
-        if plane.largest > 0:
-            _move_right_rows(state, plane)
-        state.notes["row_align"] = {**plane.as_dict(), "applied": plane.largest > 0, "given": True}
+        given = VerticalOffset(p.offset, p.tilt_x, p.tilt_y, w, h, 0, 0.0)
+        if given.largest > 0:
+            _move_right_rows(state, given)
+        state.notes["row_align"] = {**given.as_dict(), "applied": given.largest > 0, "given": True}
         return
     lo, hi = state.min_disp - 1.0, state.min_disp + state.ndisp
     scale = p.reduce
@@ -397,7 +420,8 @@ def row_align(state: MatchState, p: RowAlignParams) -> None:
     left_xy, right_xy = track_rows(state.gray("left"), state.gray("right"), disparity_range=(lo, hi),
                                    left_valid=state.left_valid, points=p.points, window=p.window, sigma=p.sigma,
                                    max_offset=p.max_offset, scale=scale)
-    plane = fit_vertical_offset(left_xy, right_xy, w, h, model=p.model, min_tracks=p.min_tracks)
+    model = cast(Literal["plane", "constant"], p.model)  # one of the parameter's choices
+    plane = fit_vertical_offset(left_xy, right_xy, w, h, model=model, min_tracks=p.min_tracks)
     # ``measured``: the plane is a measurement of the rows (enough tracks, close to it), whether
     # or not it was applied; the match job then takes the pair's row alignment from it.
     note: dict = {"tracks_found": int(len(left_xy)), "reduced": scale}
@@ -405,11 +429,14 @@ def row_align(state: MatchState, p: RowAlignParams) -> None:
         note.update(applied=False, measured=False, reason=f"fewer than {p.min_tracks} tracks")
     elif plane.spread > p.max_spread:
         note.update(plane.as_dict(), applied=False, measured=False,
-                    reason=f"tracks scatter {plane.spread:.2f} px about the plane, beyond max_spread {p.max_spread:g} px")
+                    reason=f"tracks scatter {plane.spread:.2f} px about the plane, "
+                           f"beyond max_spread {p.max_spread:g} px")
     elif plane.largest > p.max_offset:
-        note.update(plane.as_dict(), applied=False, measured=True, reason=f"offset beyond max_offset {p.max_offset:g} px")
+        note.update(plane.as_dict(), applied=False, measured=True,
+                    reason=f"offset beyond max_offset {p.max_offset:g} px")
     elif plane.largest < p.min_offset:
-        note.update(plane.as_dict(), applied=False, measured=True, reason=f"offset below min_offset {p.min_offset:g} px")
+        note.update(plane.as_dict(), applied=False, measured=True,
+                    reason=f"offset below min_offset {p.min_offset:g} px")
     else:
         note.update(plane.as_dict(), applied=True, measured=True)
         _move_right_rows(state, plane)

@@ -65,7 +65,7 @@ class VerticalOffset:
         """The offset (px) at right-view column ``x`` and row ``y`` (arrays or scalars)."""
         return self.offset + self.tilt_x * (x / self.width - 0.5) + self.tilt_y * (y / self.height - 0.5)
 
-    def reversed(self) -> "VerticalOffset":
+    def reversed(self) -> VerticalOffset:
         """The plane that moves rows back (to first order: ``v`` changes by hundredths of a
         pixel over the few pixels it moves them)."""
         return VerticalOffset(-self.offset, -self.tilt_x, -self.tilt_y, self.width, self.height, self.tracks,

@@ -37,7 +37,7 @@ import time
 from dataclasses import replace
 from functools import partial
 from pathlib import Path
-from typing import Callable
+from typing import IO, Callable, cast
 
 import numpy as np
 
@@ -115,7 +115,7 @@ def run_task(task: str, config: PipelineConfig) -> float:
             strip.disparity_right = _synthetic_disparity(state.shape, ndisp, 2)
         if state.wants.integer_maps:
             strip.integer_disparity = np.floor(strip.disparity)
-            if state.wants.right:
+            if state.wants.right and strip.disparity_right is not None:
                 strip.integer_disparity_right = np.floor(strip.disparity_right)
         finish(prepared, [strip], config)
     elif task == "volume_large":
@@ -179,10 +179,11 @@ def warm_up(configs: dict[str, PipelineConfig], *, jobs: int = 1, report=None) -
                                       stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
                                       text=True)
             workers.append(worker)
-            worker.stdin.write(payload)
-            worker.stdin.close()
+            stdin = cast(IO[str], worker.stdin)  # stdin=PIPE
+            stdin.write(payload)
+            stdin.close()
         for worker in workers:
-            lines = worker.stdout.read().splitlines()
+            lines = cast(IO[str], worker.stdout).read().splitlines()  # stdout=PIPE
             if worker.wait() != 0:
                 raise RuntimeError(f"a warm-up process failed (exit code {worker.returncode})")
             for line in lines:

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from typing import cast
 
 import cv2
 import numpy as np
@@ -40,6 +41,7 @@ class Rectification:
 
     @property
     def vertical(self) -> bool:
+        """Whether the rig is vertical (the second camera above or below the first)."""
         return abs(self.P2[1, 3]) > abs(self.P2[0, 3])
 
 
@@ -47,7 +49,7 @@ def stereo_rectify(calib, *, alpha: float = 0.0, size: tuple[int, int] | None = 
     """Rectify a :class:`~stereocli.io.calib.StereoCalibration` (alpha in [0, 1]; size = (w, h))."""
     if not (0.0 <= alpha <= 1.0) and alpha != -1:
         raise ConfigError(f"--alpha must be in [0, 1], got {alpha}")
-    out_size = tuple(int(v) for v in (size or calib.image_size))
+    out_size = cast("tuple[int, int]", tuple(int(v) for v in (size or calib.image_size)))  # (w, h)
     if min(out_size) <= 0 or min(calib.image_size) <= 0:
         raise DataError(f"calibration image size {calib.image_size} is not usable for rectification")
     if max(*out_size, *calib.image_size) > MAX_SIDE:
@@ -66,13 +68,22 @@ def stereo_rectify(calib, *, alpha: float = 0.0, size: tuple[int, int] | None = 
     R1, R2, P1, P2, Q, roi1, roi2 = cv2.stereoRectify(
         calib.K1, calib.D1, calib.K2, calib.D2, calib.image_size, calib.R, calib.T.reshape(3, 1),
         flags=cv2.CALIB_ZERO_DISPARITY, alpha=alpha, newImageSize=out_size)
-    return Rectification(R1, R2, P1, P2, Q, out_size, tuple(int(v) for v in roi1), tuple(int(v) for v in roi2))
+    return Rectification(R1, R2, P1, P2, Q, out_size, _box(roi1), _box(roi2))
+
+
+def _box(roi) -> tuple[int, int, int, int]:
+    """OpenCV's (x, y, w, h) ROI as four Python ints."""
+    x, y, w, h = (int(v) for v in roi)
+    return x, y, w, h
 
 
 def rectified_calibration(calib, *, alpha: float = 0.0, size: tuple[int, int] | None = None,
                           rect: Rectification | None = None):
-    """A copy of ``calib`` with R1 R2 P1 P2 Q and ``rectified_size`` from ``rect``, or from
-    :func:`stereo_rectify` with ``alpha`` and ``size`` (w, h) when ``rect`` is None."""
+    """Copy ``calib`` with R1 R2 P1 P2 Q and ``rectified_size`` set.
+
+    They come from ``rect``, or from :func:`stereo_rectify` with ``alpha`` and ``size`` (w, h) when
+    ``rect`` is None.
+    """
     rect = rect or stereo_rectify(calib, alpha=alpha, size=size)
     return replace(calib, R1=rect.R1, R2=rect.R2, P1=rect.P1, P2=rect.P2, Q=rect.Q, rectified_size=rect.size)
 
@@ -94,7 +105,7 @@ def valid_mask(mx: np.ndarray, my: np.ndarray, src_size: tuple[int, int]) -> np.
 
 
 def inner_box(mask: np.ndarray) -> tuple[int, int, int, int]:
-    """A conservative all-valid (x, y, w, h) box: rows and columns that are valid across the box."""
+    """Find a conservative all-valid (x, y, w, h) box: rows and columns that are valid across the box."""
     ok = mask > 0
     rows = np.flatnonzero(ok.all(axis=1))
     if rows.size == 0:
@@ -122,8 +133,11 @@ class RectifyMaps:
 
 
 def build_maps(calib, *, alpha: float = 0.0, size: tuple[int, int] | None = None) -> RectifyMaps:
-    """Rectify ``calib`` and build both remap tables and valid masks; :class:`DataError` when they
-    do not fit in memory (four float32 tables and two masks: 18 bytes a rectified pixel)."""
+    """Rectify ``calib`` and build both remap tables and valid masks.
+
+    :class:`DataError` when they do not fit in memory (four float32 tables and two masks: 18 bytes
+    a rectified pixel).
+    """
     rect = stereo_rectify(calib, alpha=alpha, size=size)
     try:
         m1x, m1y, src = _maps(calib, rect, 1)
@@ -154,7 +168,7 @@ def rectify_images(left: np.ndarray, right: np.ndarray, maps: RectifyMaps, *,
 
 
 def estimate_ndisp(rect: Rectification, *, min_depth: float | None = None, width: int | None = None) -> int:
-    """A conservative disparity range (multiple of 16).
+    """Choose a conservative disparity range (multiple of 16).
 
     With ``min_depth`` (calibration units): ``ceil16(f·B / min_depth - doffs)``; otherwise a
     quarter of the image width (a common default for hand-held rigs), at least 16.
@@ -172,15 +186,22 @@ def estimate_ndisp(rect: Rectification, *, min_depth: float | None = None, width
 
 def check_image(left: np.ndarray, right: np.ndarray, rect: Rectification | None = None, *, spacing: int = 32,
                 rois: tuple[tuple[int, int, int, int], tuple[int, int, int, int]] | None = None) -> np.ndarray:
-    """Side-by-side 8-bit RGB preview with horizontal lines every ``spacing`` px and boxes round
-    the all-valid areas (``rect``'s ROIs, or ``rois`` = (left, right) (x, y, w, h) boxes)."""
+    """Side-by-side 8-bit RGB preview with horizontal lines every ``spacing`` px.
+
+    Boxes go round the all-valid areas (``rect``'s ROIs, or ``rois`` = (left, right) (x, y, w, h)
+    boxes).
+    """
     def rgb8(im: np.ndarray) -> np.ndarray:
         if im.dtype != np.uint8:
             im = cv2.convertScaleAbs(im, alpha=255.0 / max(float(im.max()), 1.0))
         return cv2.cvtColor(im, cv2.COLOR_GRAY2RGB) if im.ndim == 2 else im.copy()
 
     a, b = rgb8(left), rgb8(right)
-    for im, roi in zip((a, b), rois or (rect.roi1, rect.roi2)):
+    if not rois:
+        if rect is None:
+            raise ValueError("check_image needs rect or rois")
+        rois = (rect.roi1, rect.roi2)
+    for im, roi in zip((a, b), rois):
         x, y, w, h = roi
         if w > 0 and h > 0:
             cv2.rectangle(im, (x, y), (x + w - 1, y + h - 1), (0, 255, 0), 1)

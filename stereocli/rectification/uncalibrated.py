@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass, field, replace
-from typing import Sequence
+from typing import Any, Protocol, Sequence, cast
 
 import cv2
 import numpy as np
@@ -86,8 +86,11 @@ _E1_CROSS = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])  # [e
 
 @dataclass(frozen=True)
 class UncalibratedRectification:
-    """An uncalibrated rectification: ``H0``/``H1`` (3, 3) float64 map original pixels (images of
-    ``source_size`` (w, h)) to pixels of the rectified images (``size`` (w, h))."""
+    """An uncalibrated rectification: two homographies from the original to the rectified images.
+
+    ``H0``/``H1`` (3, 3) float64 map original pixels (images of ``source_size`` (w, h)) to pixels
+    of the rectified images (``size`` (w, h)).
+    """
 
     H0: np.ndarray
     H1: np.ndarray
@@ -113,8 +116,8 @@ class UncalibratedRectification:
                                "right": warp_distortion(self.H1, self.source_size)}}
 
     @classmethod
-    def from_dict(cls, data: dict) -> "UncalibratedRectification":
-        """The inverse of :meth:`as_dict` (``rectification.json``)."""
+    def from_dict(cls, data: dict) -> UncalibratedRectification:
+        """Read what :meth:`as_dict` wrote (``rectification.json``)."""
         size = lambda key: (int(data[key][0]), int(data[key][1]))  # noqa: E731
         matrix = lambda key: np.asarray(data[key], np.float64)  # noqa: E731
         return cls(matrix("H0"), matrix("H1"), size("size"), size("source_size"), matrix("F"), matrix("camera0"),
@@ -216,13 +219,13 @@ def _levenberg_marquardt(residuals, p0: np.ndarray, free: np.ndarray) -> np.ndar
 
 
 def _prior_terms(p: np.ndarray) -> np.ndarray:
-    """The parameters as the prior weighs them (see :data:`PRIOR`)."""
+    """Weigh the parameters as the prior does (see :data:`PRIOR`)."""
     return np.array([PRIOR_COMMON * (p[0] + p[3]) / 2, PRIOR_COMMON * (p[1] + p[4]) / 2, PRIOR_COMMON * p[5],
                      PRIOR * (p[3] - p[0]), PRIOR * (p[4] - p[1]), PRIOR * p[2], PRIOR * p[6]])
 
 
 def _fit_model(left: np.ndarray, right: np.ndarray, size: tuple[int, int]) -> tuple[_Model, np.ndarray]:
-    """The seven parameters minimising the (Cauchy-robust) Sampson error of the matches."""
+    """Find the seven parameters minimising the (Cauchy-robust) Sampson error of the matches."""
     model = _Model(size)
     left, right = left.astype(np.float64), right.astype(np.float64)
 
@@ -245,8 +248,10 @@ def _fit_model(left: np.ndarray, right: np.ndarray, size: tuple[int, int]) -> tu
 
 
 def _homographies(model: _Model, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``H0``, ``H1`` and the rectified views' camera matrix, with the left image's centre kept
-    in place and a shared vertical offset."""
+    """``H0``, ``H1`` and the rectified views' camera matrix.
+
+    The left image's centre stays in place, and both views share a vertical offset.
+    """
     K0, K1, R0, R1 = model.parts(p)
     Kn = K0
     H0 = Kn @ R0 @ np.linalg.inv(K0)
@@ -258,8 +263,10 @@ def _homographies(model: _Model, p: np.ndarray) -> tuple[np.ndarray, np.ndarray,
 
 
 def fit_fundamental(left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(F, inliers)``: MAGSAC++ fundamental matrix of matches ``left``/``right`` ((N, 2) px) and
-    its (N,) bool inlier mask. Raises :class:`DataError` when no geometry is found."""
+    """``(F, inliers)``: MAGSAC++ fundamental matrix of matches ``left``/``right`` ((N, 2) px).
+
+    ``inliers`` is its (N,) bool inlier mask. Raises :class:`DataError` when no geometry is found.
+    """
     if len(left) < MIN_MATCHES:
         raise DataError(f"too few point matches for the epipolar geometry ({len(left)}, at least {MIN_MATCHES})")
     a, b = np.float64(left), np.float64(right)
@@ -318,16 +325,21 @@ def fit_rectification(matches: Sequence, size: tuple[int, int]) -> RigFit:
 
 
 def shifted(rect: UncalibratedRectification, shift: float) -> UncalibratedRectification:
-    """``rect`` with the right view moved ``shift`` px to the right: every disparity
-    ``x_left − x_right`` decreases by ``shift`` (the shifts add up)."""
+    """``rect`` with the right view moved ``shift`` px to the right.
+
+    Every disparity ``x_left − x_right`` decreases by ``shift`` (the shifts add up).
+    """
     T = _translation(shift, 0)
     return replace(rect, H1=T @ rect.H1, camera1=T @ rect.camera1, shift=rect.shift + float(shift))
 
 
 def framed(rect: UncalibratedRectification) -> UncalibratedRectification:
-    """``rect`` with the smallest rectified images that hold the whole warped left image and the
-    part of the right image to its left (which holds the matches of the left image's first
-    columns), at most half a width more; both views move together, so disparities stay."""
+    """``rect`` with the smallest rectified images that hold its pair.
+
+    They hold the whole warped left image and the part of the right image to its left (which
+    holds the matches of the left image's first columns), at most half a width more; both views
+    move together, so disparities stay.
+    """
     w, h = rect.source_size
     corners = np.array([[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1]], np.float64)
     left, right = transform_points(rect.H0, corners), transform_points(rect.H1, corners)
@@ -340,7 +352,7 @@ def framed(rect: UncalibratedRectification) -> UncalibratedRectification:
 
 
 def rectified_matches(rect: UncalibratedRectification, matches: PointMatches) -> PointMatches:
-    """``matches`` moved into the rectified images of ``rect``."""
+    """Move ``matches`` into the rectified images of ``rect``."""
     return PointMatches(transform_points(rect.H0, matches.left).astype(np.float32),
                         transform_points(rect.H1, matches.right).astype(np.float32), matches.features)
 
@@ -355,9 +367,11 @@ def _from_zero(rect: UncalibratedRectification, matches: Sequence[PointMatches],
 # --------------------------------------------------------------------------- guided matching
 
 def _coarse_disparity(left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, int]:
-    """A rough disparity map ((h, w) float32 px of the full resolution, NaN unknown) of a
-    rectified pair whose disparities start near 0, and its shrink factor: OpenCV's SGBM about
-    :data:`GUIDE_WIDTH` px wide, searching ``[−W/8, W/2)``."""
+    """Match a rectified pair coarsely: a rough disparity map and its shrink factor.
+
+    The map is (h, w) float32 px of the full resolution, NaN unknown, of a pair whose disparities
+    start near 0: OpenCV's SGBM about :data:`GUIDE_WIDTH` px wide, searching ``[−W/8, W/2)``.
+    """
     h, w = left.shape[:2]
     s = max(1, int(round(w / GUIDE_WIDTH)))
     a, b = (cv2.resize(grey_uint8(im), (w // s, h // s), interpolation=cv2.INTER_AREA) for im in (left, right))
@@ -375,8 +389,11 @@ def _coarse_disparity(left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, 
 
 
 def _lookup(disparity: np.ndarray, scale: int, points: np.ndarray) -> np.ndarray:
-    """Coarse disparities at full-resolution ``points`` ((N, 2) px): the nearest coarse pixel,
-    else the median of the known ones within 3 coarse pixels; NaN when none is known."""
+    """Coarse disparities at full-resolution ``points`` ((N, 2) px).
+
+    The nearest coarse pixel, else the median of the known ones within 3 coarse pixels; NaN when
+    none is known.
+    """
     h, w = disparity.shape
     k = 3
     ix = np.clip(np.rint(points[:, 0] / scale).astype(int), 0, w - 1) + k
@@ -390,7 +407,7 @@ def _lookup(disparity: np.ndarray, scale: int, points: np.ndarray) -> np.ndarray
 
 
 def guided_matches(left: np.ndarray, right: np.ndarray, rect: UncalibratedRectification) -> PointMatches:
-    """Matches found by following a first rectification ``rect`` of the pair (original images).
+    """Find matches by following a first rectification ``rect`` of the pair (original images).
 
     Corners of the left image (Shi–Tomasi) look up their disparity in a coarse dense match of
     the rectified pair (:func:`_coarse_disparity`), which puts their match in the right image
@@ -429,9 +446,11 @@ def guided_matches(left: np.ndarray, right: np.ndarray, rect: UncalibratedRectif
 
 
 def _normalised(image: np.ndarray) -> np.ndarray:
-    """(H, W) uint8 ``image`` with its local mean removed and its local contrast evened out
-    (Gaussian windows, σ = 4 px), so that tracking between differently lit or exposed views
-    compares structure, not brightness."""
+    """(H, W) uint8 ``image`` with its local mean removed and its local contrast evened out.
+
+    Gaussian windows, σ = 4 px, so that tracking between differently lit or exposed views compares
+    structure, not brightness.
+    """
     g = image.astype(np.float32)
     mean = cv2.GaussianBlur(g, (0, 0), 4)
     std = np.sqrt(cv2.GaussianBlur((g - mean) ** 2, (0, 0), 4)) + 4
@@ -463,12 +482,25 @@ class PairEstimate:
         return self.inliers >= MIN_INLIER_SHARE * self.matches
 
     def as_dict(self) -> dict:
-        out = {"matches": self.matches, "inliers": self.inliers, "fits": self.fits,
+        """Return the report as plain JSON types."""
+        out: dict[str, Any] = {"matches": self.matches, "inliers": self.inliers, "fits": self.fits,
                "dy_median": None if self.dy_median is None else round(self.dy_median, 3),
                "dy_p90": None if self.dy_p90 is None else round(self.dy_p90, 3)}
         if self.error:
             out["error"] = self.error
         return out
+
+
+class ImagePairs(Protocol):
+    """The pairs :func:`estimate_rectification` reads: ``len()``, and ``[i]`` for pair ``i``.
+
+    ``[i]`` gives the ``(left, right)`` images of pair ``i``: a list, or an object that reads them
+    when asked.
+    """
+
+    def __len__(self) -> int: ...
+
+    def __getitem__(self, index: int, /) -> tuple[np.ndarray, np.ndarray]: ...
 
 
 @dataclass
@@ -480,7 +512,7 @@ class RigEstimate:
     magsac_inliers: int
 
 
-def estimate_rectification(pairs: Sequence[tuple[np.ndarray, np.ndarray]], *,
+def estimate_rectification(pairs: ImagePairs, *,
                            rounds: int = GUIDED_ROUNDS) -> RigEstimate:
     """Estimate one uncalibrated rectification for the pairs of a rig.
 
@@ -491,9 +523,9 @@ def estimate_rectification(pairs: Sequence[tuple[np.ndarray, np.ndarray]], *,
     ``rounds`` times, guided matches (:func:`guided_matches`) are added and the fit repeated.
     Finally the disparity range of every rectified pair is estimated
     (:func:`~stereocli.features.disparity_range.estimate_range`) and the right view shifted so
-    the smallest disparity the rig's estimates expect (:func:`_lowest_disparity`) is 0. A pair that cannot be read, has fewer than
-    :data:`MIN_PAIR_MATCHES` matches or no estimable range gets an ``error`` (it is not to be
-    rectified). Raises :class:`DataError` when no pair can be used.
+    the smallest disparity the rig's estimates expect (:func:`_lowest_disparity`) is 0. A pair
+    that cannot be read, has fewer than :data:`MIN_PAIR_MATCHES` matches or no estimable range
+    gets an ``error`` (it is not to be rectified). Raises :class:`DataError` when no pair can be used.
     """
     from ..features.disparity_range import estimate_range
 
@@ -525,7 +557,7 @@ def estimate_rectification(pairs: Sequence[tuple[np.ndarray, np.ndarray]], *,
             continue
         descriptor[i] = found
     used = sorted(descriptor)
-    if not used:
+    if not used or size is None:  # (size is set by every pair in used)
         raise DataError(next((r.error for r in results if r.error), "no pairs"))
     matches = [descriptor[i] for i in used]
     fit = fit_rectification(matches, size)
@@ -543,35 +575,38 @@ def estimate_rectification(pairs: Sequence[tuple[np.ndarray, np.ndarray]], *,
         r0, r1, _, _ = warp_pair(*pairs[i], rect)
         kept = PointMatches(m.left[inliers], m.right[inliers], m.features)
         try:
-            found = estimate_range(r0, r1, rectified_matches(rect, kept))
+            pair_range = estimate_range(r0, r1, rectified_matches(rect, kept))
         except DataError as exc:
             est.error = str(exc)
             continue
-        est.min_disp, est.max_disp, est.evidence = found.min_disp, found.max_disp, found.as_dict()
+        est.min_disp, est.max_disp, est.evidence = pair_range.min_disp, pair_range.max_disp, pair_range.as_dict()
     ranged = [r for r in results if r.min_disp is not None]
     if not ranged:
         raise DataError(next((r.error for r in results if r.error), "no disparity range"))
     # The rig's pairs set the shift (a pair that does not fit it has no meaningful range); an
     # integer, so the ranges stay whole pixels.
-    shift = min(_lowest_disparity(r.evidence) for r in ([r for r in ranged if r.fits] or ranged))
+    # (Every pair in ``ranged`` got min_disp, max_disp and evidence together.)
+    shift = min(_lowest_disparity(cast(dict, r.evidence)) for r in ([r for r in ranged if r.fits] or ranged))
     for r in ranged:
-        r.min_disp, r.max_disp = max(0, r.min_disp - shift), r.max_disp - shift
-        r.evidence["min_disp"] -= shift
+        evidence = cast(dict, r.evidence)
+        r.min_disp, r.max_disp = max(0, cast(int, r.min_disp) - shift), cast(int, r.max_disp) - shift
+        evidence["min_disp"] -= shift
         for key in ("dense_percentiles", "sparse_percentiles"):
-            if r.evidence.get(key) is not None:
-                r.evidence[key] = [round(v - shift, 2) for v in r.evidence[key]]
+            if evidence.get(key) is not None:
+                evidence[key] = [round(v - shift, 2) for v in evidence[key]]
     return RigEstimate(framed(shifted(rect, float(shift))), results, fit.magsac_inliers)
 
 
 def _lowest_disparity(evidence: dict) -> int:
-    """The smallest disparity (px) a pair's range estimate expects, with a margin of one coarse
-    pixel + 2 px rather than the range's own (``2·scale + 4``).
+    """Find the smallest disparity (px) a pair's range estimate expects, with a smaller margin.
 
-    It becomes disparity 0 of the rectified pair. Every pixel of margin moves every true match
+    The margin is one coarse pixel + 2 px rather than the range's own (``2·scale + 4``). It
+    becomes disparity 0 of the rectified pair. Every pixel of margin moves every true match
     one column further right, so the first columns of the left image lose their matches
     beyond the right image's edge; the range's full margin cost up to 14 columns. On the
     Middlebury scenes, the smallest true disparity lies at most 4.8 px below the estimate's
-    lower percentile (Pipes, coarse scale 5: margin 7)."""
+    lower percentile (Pipes, coarse scale 5: margin 7).
+    """
     lows = [evidence[key][0] for key in ("dense_percentiles", "sparse_percentiles") if evidence.get(key)]
     return int(np.floor(min(lows) - evidence["scale"] - 2))
 
@@ -603,8 +638,11 @@ def _inverse_maps(H: np.ndarray, size: tuple[int, int]) -> tuple[np.ndarray, np.
 
 def warp_pair(left: np.ndarray, right: np.ndarray, rect: UncalibratedRectification, *,
               interpolation: str = "linear") -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """``(left, right, valid0, valid1)``: the rectified images (dtype and channels kept, 0 outside
-    the source) and uint8 (h, w) masks, 255 where the pixel lies on the source image."""
+    """``(left, right, valid0, valid1)``: the rectified images and their masks.
+
+    The images keep their dtype and channels, 0 outside the source; the masks are uint8 (h, w),
+    255 where the pixel lies on the source image.
+    """
     if interpolation not in INTERPOLATIONS:
         raise ValueError(f"unknown interpolation {interpolation!r}; valid: {', '.join(INTERPOLATIONS)}")
     for image in (left, right):
@@ -625,9 +663,12 @@ def warp_pair(left: np.ndarray, right: np.ndarray, rect: UncalibratedRectificati
 
 
 def uncalibrated_calib_txt(rect: UncalibratedRectification, ndisp: int, min_disp: int, max_disp: int):
-    """The Middlebury calib.txt of an uncalibrated rectification ``rect``: the rectified views'
-    virtual cameras (``doffs`` = where infinity would be if their focal length were right), the
-    size and the disparity range; no baseline (0), and ``rectification=uncalibrated`` says why."""
+    """Build the Middlebury calib.txt of an uncalibrated rectification ``rect``.
+
+    It holds the rectified views' virtual cameras (``doffs`` = where infinity would be if their
+    focal length were right), the size and the disparity range; no baseline (0), and
+    ``rectification=uncalibrated`` says why.
+    """
     from ..io.middlebury import MiddleburyCalib
 
     return MiddleburyCalib(cam0=rect.camera0, cam1=rect.camera1, doffs=float(rect.camera1[0, 2] - rect.camera0[0, 2]),
@@ -659,9 +700,11 @@ def warp_distortion(H: np.ndarray, size: tuple[int, int]) -> dict[str, float]:
 # --------------------------------------------------------------------------- disparities back to the originals
 
 def _sample_disparity(disparity: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """``disparity`` at sub-pixel positions: bilinear where the four neighbours are finite and
-    within 1 px of each other (one surface), else the nearest pixel (a depth edge or a hole is
-    not blended); +inf outside the map."""
+    """``disparity`` at sub-pixel positions.
+
+    Bilinear where the four neighbours are finite and within 1 px of each other (one surface),
+    else the nearest pixel (a depth edge or a hole is not blended); +inf outside the map.
+    """
     h, w = disparity.shape
     x0, y0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
     fx, fy = (x - x0).astype(np.float32), (y - y0).astype(np.float32)

@@ -115,8 +115,8 @@ def render(surfaces: list[Surface], width: int, height: int, *, supersample: int
     rng = np.random.default_rng(seed)
     ys, xs = np.mgrid[0:height, 0:width].astype(np.float64)
     offsets = (np.arange(supersample) + 0.5) / supersample - 0.5
-    left = np.zeros((height, width, 3), np.float32)
-    right = np.zeros((height, width, 3), np.float32)
+    left: np.ndarray = np.zeros((height, width, 3), np.float32)
+    right: np.ndarray = np.zeros((height, width, 3), np.float32)
     for oy in offsets:
         for ox in offsets:
             x, y = xs + ox, ys + oy
@@ -135,7 +135,10 @@ def render(surfaces: list[Surface], width: int, height: int, *, supersample: int
     ridx, rd, _ = _visible_right(surfaces, xs - gt, ys)
     nonocc = (xs - gt >= -0.5) & (ridx == idx) & (np.abs(rd - gt) < 1e-3)
     mask = np.where(nonocc, 255, 128).astype(np.uint8)
-    to8 = lambda im: np.clip(np.round(im), 0, 255).astype(np.uint8)  # noqa: E731
+
+    def to8(im: np.ndarray) -> np.ndarray:
+        return np.clip(np.round(im), 0, 255).astype(np.uint8)
+
     return {"left": to8(left), "right": to8(right), "disparity": gt.astype(np.float32), "mask": mask}
 
 

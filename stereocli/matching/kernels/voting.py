@@ -27,16 +27,16 @@ def region_vote(disp: np.ndarray, arms: np.ndarray, min_disp: int, ndisp: int, m
     """One pass of region voting: each outlier takes the dominant reliable disparity of its
     cross support region.
 
-    The support of p is the union of the horizontal arms of the pixels on p's vertical arm
-    (Mei et al. 2011, §4, "iterative region voting"); ``arms`` (H, W, 4) int32 as
-    :func:`stereocli.matching.kernels.aggregation.cross_arms_two_threshold` gives them. Reliable (finite) disparities vote into
-    1-px bins ``round(d) − min_disp``; with S votes and H* in the fullest bin, p takes the mean
-    of the votes in that bin when S ≥ ``min_votes`` and H*/S ≥ ``min_share``, else stays
-    +inf. ``stride`` > 1 samples the support on a grid of that step through p (every
-    ``stride``-th row of the vertical arm, every ``stride``-th pixel of each horizontal arm):
-    about stride² fewer votes, with ``min_votes`` counted on the full region (divided by
-    stride²). Reads only the input map (Jacobi update), so the result does not depend on the
-    order pixels are visited. Returns a new map.
+    The support of p is the union of the horizontal arms of the pixels on p's vertical arm (Mei et
+    al. 2011, §4, "iterative region voting"); ``arms`` (H, W, 4) int32 as
+    :func:`stereocli.matching.kernels.aggregation.cross_arms_two_threshold` gives them. Reliable
+    (finite) disparities vote into 1-px bins ``round(d) − min_disp``; with S votes and H* in the
+    fullest bin, p takes the mean of the votes in that bin when S ≥ ``min_votes`` and H*/S ≥
+    ``min_share``, else stays +inf. ``stride`` > 1 samples the support on a grid of that step
+    through p (every ``stride``-th row of the vertical arm, every ``stride``-th pixel of each
+    horizontal arm): about stride² fewer votes, with ``min_votes`` counted on the full region
+    (divided by stride²). Reads only the input map (Jacobi update), so the result does not depend on
+    the order pixels are visited. Returns a new map.
     """
     disp = np.ascontiguousarray(disp, dtype=np.float32)
     arms = np.ascontiguousarray(arms, dtype=np.int32)

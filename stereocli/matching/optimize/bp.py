@@ -27,14 +27,19 @@ from ..state import MatchState
 
 @dataclass(frozen=True)
 class BPParams:
-    smoothness: float = param(0.065, "λ: penalty per pixel of disparity difference between 4-neighbours, as a fraction of cost_max", unit="1/px", low=0.0, high=1e6)
-    truncate: float = param(2.0, "T: the penalty stops growing beyond this jump (discontinuity cost λ·T)", unit="px", low=0.0, high=1e4)
+    smoothness: float = param(0.065, "λ: penalty per pixel of disparity difference between 4-neighbours, as a "
+                              "fraction of cost_max", unit="1/px", low=0.0, high=1e6)
+    truncate: float = param(2.0, "T: the penalty stops growing beyond this jump (discontinuity cost λ·T)",
+                            unit="px", low=0.0, high=1e4)
     data_weight: float = param(1.0, "multiplier of the data cost", low=0.0, high=1e6)
-    data_trunc: float = param(0.0, "truncate the data cost at this fraction of cost_max (0 = off), robust to outliers", low=0.0, high=1.0)
+    data_trunc: float = param(0.0, "truncate the data cost at this fraction of cost_max (0 = off), robust to outliers",
+                              low=0.0, high=1.0)
     iterations: int = param(6, "message-passing sweeps per pyramid level", low=1, high=1000)
     levels: int = param(5, "pyramid levels (1 = plain loopy BP on the full grid)", low=1, high=12)
-    edge_threshold: float = param(8.0, "grey difference below which neighbours count as the same surface", unit="grey levels", low=0.0, high=255.0)
-    edge_factor: float = param(2.0, "smoothness multiplier between same-surface neighbours (1 = off)", low=1.0, high=100.0)
+    edge_threshold: float = param(8.0, "grey difference below which neighbours count as the same surface",
+                                  unit="grey levels", low=0.0, high=255.0)
+    edge_factor: float = param(2.0, "smoothness multiplier between same-surface neighbours (1 = off)",
+                               low=1.0, high=100.0)
 
 
 # Extra volumes: data term, 4 message volumes, beliefs.
@@ -50,6 +55,8 @@ def bp(state: MatchState, p: BPParams) -> None:
     the cost range ``cost_max`` (like ``sgm``'s penalties).
     """
     cost = state.cost
+    if cost is None:  # (never: the pipeline runs a cost stage first)
+        raise RuntimeError("optimizer.bp: no cost volume")
     h, w, nd = cost.shape
     data0 = kb.data_term(cost, float(p.data_weight), float(p.data_trunc) * state.cost_max)
     wh0, wv0 = edge_weights(np.ascontiguousarray(state.gray("left")), float(p.edge_threshold), float(p.edge_factor))
@@ -60,10 +67,10 @@ def bp(state: MatchState, p: BPParams) -> None:
             break
         ca, cb = kb.downsample_weights(a, b)
         pyramid.append((kb.downsample_data(d), ca, cb))
-    msgs = None
+    msgs: list[np.ndarray] = []
     for data, wh, wv in reversed(pyramid):
         lh, lw = data.shape[:2]
-        if msgs is None:
+        if not msgs:
             msgs = [np.zeros((lh, lw, nd), np.float32) for _ in range(4)]
         else:
             msgs = [kb.upsample_messages(m, lh, lw) for m in msgs]

@@ -18,19 +18,22 @@ from dataclasses import dataclass
 import numpy as np
 
 from ...registry import StageTraits, param, register
-from ..kernels.coop import box_disparity, inhibit, initial_match_values
 from ..kernels.aggregation import box_filter_volume
+from ..kernels.coop import box_disparity, inhibit, initial_match_values
 from ..state import MatchState
 
 
 @dataclass(frozen=True)
 class CoopParams:
-    sigma: float = param(0.13, "σ of the initial match values L0 = exp(−C/σ), as a fraction of cost_max", low=1e-6, high=1e6)
-    window: tuple[int, int] = param((5, 5), "support window (height, width) in the image, odd", unit="px", low=1, high=51)
+    sigma: float = param(0.13, "σ of the initial match values L0 = exp(−C/σ), as a fraction of cost_max",
+                         low=1e-6, high=1e6)
+    window: tuple[int, int] = param((5, 5), "support window (height, width) in the image, odd",
+                                    unit="px", low=1, high=51)
     disp_radius: int = param(1, "support extends ±this many disparities", unit="px", low=0, high=10)
     alpha: float = param(2.0, "inhibition exponent α (> 1 makes the competition converge)", low=1.0, high=10.0)
     iterations: int = param(10, "support/inhibition iterations", low=1, high=200)
-    min_value: float = param(0.0, "declare occluded (+inf) where the largest match value is below this (0 = off)", low=0.0, high=1.0)
+    min_value: float = param(0.0, "declare occluded (+inf) where the largest match value is below this (0 = off)",
+                             low=0.0, high=1.0)
 
 
 # Extra volumes: L0, L, support (+ float64 temporaries of the box filter).

@@ -20,7 +20,8 @@ from ..state import MatchState
 
 @dataclass(frozen=True)
 class DPParams:
-    occlusion: float = param(0.2, "cost κ_occ of one occluded (unmatched) left or right pixel, as a fraction of the cost's range (cost_max); higher = fewer occlusions", low=0.0, high=1e4)
+    occlusion: float = param(0.2, "cost κ_occ of one occluded (unmatched) left or right pixel, as a fraction of the "
+                             "cost's range (cost_max); higher = fewer occlusions", low=0.0, high=1e4)
 
 
 @register("optimizer", "dp", DPParams)

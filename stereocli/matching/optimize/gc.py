@@ -32,13 +32,16 @@ _DOWN = np.array([[0, 0, 0], [0, 0, 0], [0, 1, 0]])
 
 @dataclass(frozen=True)
 class GCParams:
-    smoothness: float = param(0.3, "λ: cost of a disparity change between 4-neighbours (per px for truncated_linear), as a fraction of cost_max", low=0.0, high=1e6)
+    smoothness: float = param(0.3, "λ: cost of a disparity change between 4-neighbours (per px for truncated_linear), "
+                              "as a fraction of cost_max", low=0.0, high=1e6)
     model: str = param("potts", "smoothness term V", choices=("potts", "truncated_linear"))
     truncate: float = param(2.0, "T of the truncated-linear term (ignored for potts)", unit="px", low=1.0, high=1e4)
     data_trunc: float = param(0.0, "truncate the data cost at this fraction of cost_max (0 = off)", low=0.0, high=1.0)
     cycles: int = param(3, "maximum passes over all labels (stops early when no move helps)", low=1, high=50)
-    edge_threshold: float = param(8.0, "grey difference below which neighbours count as the same surface", unit="grey levels", low=0.0, high=255.0)
-    edge_factor: float = param(2.0, "smoothness multiplier between same-surface neighbours (1 = off)", low=1.0, high=100.0)
+    edge_threshold: float = param(8.0, "grey difference below which neighbours count as the same surface",
+                                  unit="grey levels", low=0.0, high=255.0)
+    edge_factor: float = param(2.0, "smoothness multiplier between same-surface neighbours (1 = off)",
+                               low=1.0, high=100.0)
 
 
 def _import_maxflow():
@@ -57,7 +60,8 @@ def _pair_cost(a: np.ndarray, b: np.ndarray, model: str, trunc: float) -> np.nda
     return np.minimum(np.abs(a - b), trunc).astype(np.float64)
 
 
-def energy(data: np.ndarray, labels: np.ndarray, wh: np.ndarray, wv: np.ndarray, lam: float, model: str, trunc: float) -> float:
+def energy(data: np.ndarray, labels: np.ndarray, wh: np.ndarray, wv: np.ndarray, lam: float, model: str,
+           trunc: float) -> float:
     """E(labels) of :mod:`this module's <stereocli.matching.optimize.gc>` energy (for tests)."""
     unary = np.take_along_axis(data, labels[..., None], 2).sum(dtype=np.float64)
     ph = _pair_cost(labels[:, :-1], labels[:, 1:], model, trunc) * wh[:, :-1]
@@ -121,6 +125,8 @@ def gc(state: MatchState, p: GCParams) -> None:
     """
     maxflow = _import_maxflow()
     cost = state.cost
+    if cost is None:  # (never: the pipeline runs a cost stage first)
+        raise RuntimeError("optimizer.gc: no cost volume")
     h, w, nd = cost.shape
     data = cost if p.data_trunc <= 0 else np.minimum(cost, np.float32(p.data_trunc * state.cost_max))
     wh, wv = edge_weights(np.ascontiguousarray(state.gray("left")), float(p.edge_threshold), float(p.edge_factor))

@@ -22,10 +22,14 @@ from ..state import MatchState
 
 @dataclass(frozen=True)
 class SOParams:
-    smoothness: float = param(0.1, "λ: penalty per pixel of disparity change between horizontal neighbours, as a fraction of cost_max", unit="1/px", low=0.0, high=1e6)
-    truncate: float = param(2.0, "T: the penalty stops growing beyond this jump (1 = Potts)", unit="px", low=0.0, high=1e4)
-    edge_threshold: float = param(8.0, "grey difference below which neighbours count as the same surface", unit="grey levels", low=0.0, high=255.0)
-    edge_factor: float = param(2.0, "smoothness multiplier between same-surface neighbours (1 = off)", low=1.0, high=100.0)
+    smoothness: float = param(0.1, "λ: penalty per pixel of disparity change between horizontal neighbours, as a "
+                              "fraction of cost_max", unit="1/px", low=0.0, high=1e6)
+    truncate: float = param(2.0, "T: the penalty stops growing beyond this jump (1 = Potts)",
+                            unit="px", low=0.0, high=1e4)
+    edge_threshold: float = param(8.0, "grey difference below which neighbours count as the same surface",
+                                  unit="grey levels", low=0.0, high=255.0)
+    edge_factor: float = param(2.0, "smoothness multiplier between same-surface neighbours (1 = off)",
+                               low=1.0, high=100.0)
 
 
 # Extra volumes: min-marginals + per-row buffers.

@@ -19,6 +19,8 @@ from ..state import MatchState, WinnerCosts
 @register("optimizer", "wta", traits=StageTraits(winner_take_all=True))
 def wta(state: MatchState, params) -> None:
     """Lowest cost per pixel (no smoothness term); ties go to the smaller disparity."""
+    if state.cost is None:  # (never: the pipeline runs a cost stage first)
+        raise RuntimeError("optimizer.wta: no cost volume")
     state.disparity, _ = wta_left(state.cost, state.min_disp, state.cost_max)
 
 
@@ -39,6 +41,8 @@ def subpixel_on_winner(winner: WinnerCosts, disparity: np.ndarray, min_disp: int
     :func:`~stereocli.matching.kernels.winners.subpixel_left` on the volume; ``right``: the
     right-view map from ``winner.costs_right``)."""
     if right:
+        if winner.disparity_right is None or winner.costs_right is None:  # (never: asked for with the right view)
+            raise RuntimeError(f"refinement.{stage}: the winner costs hold no right view")
         refined, missing = subpixel_winner(winner.disparity_right, winner.costs_right, disparity, min_disp, ndisp,
                                            equiangular, False)
     else:
