@@ -57,9 +57,9 @@ from stereocli.evaluation.api import EvalOptions, evaluate_pair, weighted_averag
 from stereocli.evaluation.datasets import load_scene  # noqa: E402
 from stereocli.io.images import read_image  # noqa: E402
 from stereocli.matching.config import build_config  # noqa: E402
-from stereocli.runtime import set_threads as set_kernel_threads  # noqa: E402
 from stereocli.matching.pipeline import match_pair  # noqa: E402
 from stereocli.process import keep_freed_memory, prepare_kernels  # noqa: E402
+from stereocli.runtime import set_threads as set_kernel_threads  # noqa: E402
 
 sys.path.insert(0, str(REPO / "benchmarks"))
 import scoreboard  # noqa: E402  (benchmarks/scoreboard.py)

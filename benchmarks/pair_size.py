@@ -33,8 +33,8 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 
 from accuracy import DEFAULT_DATA, load_scenes, presets_and_3way, timed_in_turns  # noqa: E402
 from stereocli.matching.config import build_config  # noqa: E402
-from stereocli.runtime import set_threads as set_kernel_threads  # noqa: E402
 from stereocli.process import keep_freed_memory, prepare_kernels  # noqa: E402
+from stereocli.runtime import set_threads as set_kernel_threads  # noqa: E402
 
 keep_freed_memory()  # as the command line does
 prepare_kernels()

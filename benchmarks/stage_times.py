@@ -30,8 +30,8 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 
 from accuracy import DEFAULT_DATA, load_scenes, presets_and_3way, timed_in_turns  # noqa: E402
 from stereocli.matching.config import build_config  # noqa: E402
-from stereocli.runtime import set_threads as set_kernel_threads  # noqa: E402
 from stereocli.process import keep_freed_memory, prepare_kernels  # noqa: E402
+from stereocli.runtime import set_threads as set_kernel_threads  # noqa: E402
 
 keep_freed_memory()  # as the command line does: freed buffers stay in the process between pairs
 prepare_kernels()  # as the command line does: idle kernel threads sleep, numba starts faster

@@ -378,8 +378,8 @@ def match(
     1.2
     """
     from .features.survey import check_range_meets_image, measures_rows, rows_corrected, rows_from_match, survey_pair
-    from .runtime import threads_for_call
     from .matching.pipeline import match_pair
+    from .runtime import threads_for_call
 
     left, right = _as_image(left, "left", name), _as_image(right, "right", name)
     if left.shape[:2] != right.shape[:2]:
@@ -697,7 +697,8 @@ def _label(value: Any, default: str) -> str:
 
 def _valid_mask(value: np.ndarray | PathLike, shape: tuple[int, ...]) -> np.ndarray:
     """A valid mask as (H, W) bool: an array as it is (nonzero valid), a file read as
-    ``valid0.png`` holds it (above 127 valid)."""
+    ``valid0.png`` holds it (above 127 valid).
+    """
     if isinstance(value, (str, os.PathLike)):
         mask = read_image(value, gray=True) > 127
     else:

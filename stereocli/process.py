@@ -259,7 +259,7 @@ class interrupts_raise:
     is ignored while cleaning up, a third exits at once). Nests; a no-op outside the main thread.
     """
 
-    def __enter__(self) -> "interrupts_raise":
+    def __enter__(self) -> interrupts_raise:
         import signal
         import threading
 
@@ -287,7 +287,7 @@ class deferred_interrupts:
     """Context manager: a signal arriving inside the block is raised when the block ends, so a
     short sequence (renaming a pair's outputs into place) is never cut in half."""
 
-    def __enter__(self) -> "deferred_interrupts":
+    def __enter__(self) -> deferred_interrupts:
         _SignalState.deferred += 1
         return self
 
@@ -309,7 +309,7 @@ class interrupts_blocked:
     """Context manager: SIGINT and SIGTERM are held (not lost) by this thread while it starts
     worker processes, which inherit the blocked mask until :func:`worker_signals` ignores them."""
 
-    def __enter__(self) -> "interrupts_blocked":
+    def __enter__(self) -> interrupts_blocked:
         import signal
 
         self._sigs = {signal.SIGINT, signal.SIGTERM}
@@ -387,7 +387,7 @@ class capture_native_stderr:
         self.enabled = enabled
         self._lines: list[str] = []
 
-    def __enter__(self) -> "capture_native_stderr":
+    def __enter__(self) -> capture_native_stderr:
         import tempfile
         import warnings
 

@@ -95,7 +95,7 @@ class RectifiedGeometry:
     def focal_y(self) -> float:
         return self.fy if self.fy else self.f
 
-    def scaled(self, units: str) -> "RectifiedGeometry":
+    def scaled(self, units: str) -> RectifiedGeometry:
         """The same geometry with the baseline (hence depth) in ``units`` (known length units only)."""
         if units == self.units:
             return self

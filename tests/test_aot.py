@@ -15,9 +15,9 @@ import pytest
 
 from conftest import REPO
 from stereocli.matching.config import build_config
-from stereocli.runtime import aot
 from stereocli.matching.pipeline import match_pair
 from stereocli.matching.warmup import synthetic_pair
+from stereocli.runtime import aot
 
 _FIND = aot.find  # the real lookup (the tests wrap it)
 #: Two kernels built in the test (about 5 s): one that allocates, one that does not.

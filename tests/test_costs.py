@@ -356,8 +356,8 @@ def test_weighted_census_coarse_level_takes_plain_distances(monkeypatch):
 
 @pytest.mark.parametrize("threads", [1, 2])
 def test_nearest_bit_strings_match_a_numpy_reference_ties_included(threads):
-    from stereocli.runtime import set_threads
     from stereocli.matching.kernels.census import nearest_bit_strings
+    from stereocli.runtime import set_threads
 
     rng = np.random.default_rng(5)
     queries = rng.integers(0, 256, (37, 32), dtype=np.uint8)

@@ -11,7 +11,6 @@ import numpy as np
 import pytest
 
 from stereocli.evaluation import api, folders
-from stereocli.jobs import evaluate as jobs_evaluate
 from stereocli.io.pfm import read_pfm, write_pfm
 from stereocli.jobs import evaluate as jobs_evaluate
 

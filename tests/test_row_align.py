@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from conftest import two_scenes
-from stereocli.matching.vertical_offset import VerticalOffset, fit_vertical_offset, resample_rows, track_rows
 from stereocli.io.images import read_image
 from stereocli.matching.config import build_config
 from stereocli.matching.pipeline import match_pair
+from stereocli.matching.vertical_offset import VerticalOffset, fit_vertical_offset, resample_rows, track_rows
 from stereocli.synth.scenes import render, scene_surfaces
 
 W, H = 320, 240

@@ -200,7 +200,8 @@ def rectified_epipolar_error(calib: StereoCalibration, views: list[View]) -> dic
     ``max``, ``points``, each view's max (``per_view``: name → px) and the corners above
     :data:`EPIPOLAR_LIMIT` (``above_limit``: per view, ``name``, the two images, ``max`` and
     ``corners``, each with its ``index`` in detection order, left-image ``x``/``y`` and ``dy``,
-    largest first)."""
+    largest first).
+    """
     undistort = cv2.fisheye.undistortPoints if calib.model == "fisheye" else cv2.undistortPoints
     dys, per_view, above = [], {}, []
     for v in views:
@@ -225,7 +226,8 @@ def rectified_epipolar_error(calib: StereoCalibration, views: list[View]) -> dic
 
 def _epipolar_warning(above: list[dict]) -> str:
     """The warning naming the views and corners whose rectified rows differ by more than
-    :data:`EPIPOLAR_LIMIT`."""
+    :data:`EPIPOLAR_LIMIT`.
+    """
     corners = sum(len(v["corners"]) for v in above)
     parts = []
     for v in above:

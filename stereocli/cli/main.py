@@ -52,8 +52,8 @@ class LazyGroup(click.Group):
 def _show_versions(ctx: click.Context, _param: click.Parameter, value: bool) -> None:
     if not value or ctx.resilient_parsing:
         return
-    from ..runtime.aot import describe
     from ..runinfo import versions
+    from ..runtime.aot import describe
 
     for name, version in versions().items():
         click.echo(f"{name}: {version}")

@@ -6,9 +6,9 @@ from pathlib import Path
 
 import click
 
+from ..errors import ConfigError as usage_error  # one-line message, exit 2
 from . import options
 from .common import print_json, run_batch_command, unpaired_failures
-from ..errors import ConfigError as usage_error  # one-line message, exit 2
 
 
 @click.command("triangulate")

@@ -90,7 +90,8 @@ def pair_scene(ground_truth: Path, options: EvalOptions, *, name: str | None, ki
                label: str = "estimate") -> ds.Scene:
     """The GT scene to score one estimate against: a GT file, a scene folder, the scene
     ``kitti_name`` (default ``name``) of a KITTI root, or the scene ``name`` of a folder of
-    scenes (exact, then case-insensitive). ``label`` names the estimate in errors."""
+    scenes (exact, then case-insensitive). ``label`` names the estimate in errors.
+    """
     if ground_truth.is_file():
         return ds.load_gt_file(ground_truth, dataset=options.dataset, gt_scale=options.gt_scale,
                                resolution=options.scene_resolution())

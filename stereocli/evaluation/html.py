@@ -12,9 +12,9 @@ import numpy as np
 
 from ..errors import check_outputs_free
 from ..io.atomic import write_text
-from .scoring import EvalReport
 from .maps import scene_images
 from .report import format_table, region_table
+from .scoring import EvalReport
 
 #: Previews wider than this are downscaled in the HTML (keeps the file small).
 MAX_PREVIEW_WIDTH = 480

@@ -16,8 +16,8 @@ from ..errors import check_outputs_free
 from ..io.images import read_image, write_image
 from ..io.pairs import output_name
 from ..viz import colorize_disparity, colorize_error, gray_preview, legend_bar, with_legend
-from .scoring import EvalReport, SceneResult
 from .metrics import KITTI_ABS_THRESH, KITTI_REL_THRESH, abs_error
+from .scoring import EvalReport, SceneResult
 
 MAP_FILES = ("disparity.png", "gt.png", "error.png", "bad.png")
 

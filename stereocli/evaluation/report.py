@@ -15,8 +15,8 @@ import textwrap
 import unicodedata
 from typing import Any
 
-from .scoring import EvalReport, SceneResult, json_ready
 from .metrics import quantile_key, threshold_key
+from .scoring import EvalReport, SceneResult, json_ready
 
 FORMATS = ("text", "json", "csv", "markdown")
 

@@ -45,7 +45,7 @@ class MiddleburyCalib:
 MIN_DISP_KEY = "mindisp"
 
 
-def calib_range(calib: "MiddleburyCalib", path: str | os.PathLike) -> tuple[int, int] | None:
+def calib_range(calib: MiddleburyCalib, path: str | os.PathLike) -> tuple[int, int] | None:
     """``(min_disp, ndisp)`` of the range a calib.txt gives: ``[0, ndisp)``, or
     ``[mindisp, ndisp)`` with stereocli's ``mindisp=`` line; None without ``ndisp``."""
     if calib.ndisp <= 0:

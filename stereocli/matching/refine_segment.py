@@ -12,13 +12,13 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from ..errors import ConfigError
+from ..registry import StageTraits, param, register
 from .cost import _channels, colour_switch
 from .kernels import geodesic_vote as kg
 from .kernels import local_consistency as klc
 from .kernels import maps as km
 from .kernels import segment_planes as ksp
-from ..errors import ConfigError
-from ..registry import StageTraits, param, register
 from .state import MatchState
 
 

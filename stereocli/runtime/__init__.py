@@ -12,8 +12,17 @@ import threading
 from contextlib import contextmanager
 from typing import TYPE_CHECKING, Iterator
 
-from .compiling import (LazyKernel, chunk_kernel, get_numba_threads, intrinsic, njit, numba_started, prange,
-                        prange_only, set_numba_threads)
+from .compiling import (
+    LazyKernel,
+    chunk_kernel,
+    get_numba_threads,
+    intrinsic,
+    njit,
+    numba_started,
+    prange,
+    prange_only,
+    set_numba_threads,
+)
 
 if TYPE_CHECKING:
     from concurrent.futures import ThreadPoolExecutor

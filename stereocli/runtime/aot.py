@@ -328,8 +328,8 @@ def build(folder: Path = BUILD_DIR, jobs: int = 0, log=print, only: list[str] | 
     One module per kernel because pycc's modules of several kernels were not always correct
     (``_fill_background_rows`` beside ``_hamming_rows`` wrote nothing, with the same machine
     code); numba's C runtime, which each module links, is compiled once per process."""
-    from concurrent.futures import ProcessPoolExecutor
     import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
 
     started = time.perf_counter()
     folder = Path(folder)
@@ -370,10 +370,10 @@ def _build_module(job: tuple[str, str, dict[str, list[tuple[str, ...]]], str]) -
     numba's C runtime objects), exporting :func:`export_name` for each signature."""
     folder, name, kernels, scratch = job
     started = time.perf_counter()
+    import numba.pycc.compiler as pycc_compiler
     from numba.core import types
     from numba.core.compiler import Flags
     from numba.core.cpu import ParallelOptions
-    import numba.pycc.compiler as pycc_compiler
     from numba.pycc import CC
 
     from .compiling import _allow_noalias, prange_only, start_numba

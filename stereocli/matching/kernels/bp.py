@@ -15,7 +15,6 @@ from __future__ import annotations
 import numpy as np
 
 from ...runtime import njit, prange
-
 from .dp import _dt_truncated_linear
 
 

@@ -8,7 +8,6 @@ import numpy as np
 from ...runtime import chunk_kernel, for_chunks, njit
 from .local_consistency import _packed_distance
 
-
 #: A running vote's scale below which its stored masses are folded back (float64 keeps ~300
 #: decades; the product of the per-pixel decays can shrink fast across strong colour edges).
 _RESCALE_BELOW = 1e-30

@@ -7,7 +7,6 @@ import numpy as np
 
 from ...runtime import chunk_kernel, for_chunks, for_rows, njit
 
-
 # --- segmentation -------------------------------------------------------------------------
 
 
