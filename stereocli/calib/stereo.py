@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, field
+from typing import Any
 
 import cv2
 import numpy as np
@@ -116,16 +117,19 @@ def build_views(pairs: list[tuple[str, str, str]], detections: dict[str, Detecti
         for d in (dl, dr):
             if not d.found:
                 missing.append({"image": d.path, "reason": d.reason})
-        if not (dl.found and dr.found):
+        left_corners, right_corners = dl.corners, dr.corners
+        if left_corners is None or right_corners is None:  # not (dl.found and dr.found)
             continue
         if dl.ids is None and dr.ids is None:
-            views.append(View(name, left, right, obj_all, dl.corners, dr.corners))
+            views.append(View(name, left, right, obj_all, left_corners, right_corners))
             continue
+        if dl.ids is None or dr.ids is None:  # (never: both images are searched for the same pattern)
+            raise DataError(f"{left} + {right}: ChArUco ids in one image only")
         common, il, ir = np.intersect1d(dl.ids, dr.ids, return_indices=True)
         if common.size < 6:
             missing.append({"image": f"{left} + {right}", "reason": f"only {common.size} ChArUco corners seen by both"})
             continue
-        views.append(View(name, left, right, obj_all[common], dl.corners[il], dr.corners[ir]))
+        views.append(View(name, left, right, obj_all[common], left_corners[il], right_corners[ir]))
     return views, missing, size
 
 
@@ -202,6 +206,9 @@ def rectified_epipolar_error(calib: StereoCalibration, views: list[View]) -> dic
     ``corners``, each with its ``index`` in detection order, left-image ``x``/``y`` and ``dy``,
     largest first).
     """
+    P2 = calib.P2
+    if P2 is None:
+        raise DataError("calibration has no rectification (P1, P2): no rectified epipolar error")
     undistort = cv2.fisheye.undistortPoints if calib.model == "fisheye" else cv2.undistortPoints
     dys, per_view, above = [], {}, []
     for v in views:
@@ -209,7 +216,7 @@ def rectified_epipolar_error(calib: StereoCalibration, views: list[View]) -> dic
         D2 = calib.D2[:4] if calib.model == "fisheye" else calib.D2
         a = undistort(v.left_points.reshape(-1, 1, 2).astype(np.float64), calib.K1, D1, R=calib.R1, P=calib.P1)
         b = undistort(v.right_points.reshape(-1, 1, 2).astype(np.float64), calib.K2, D2, R=calib.R2, P=calib.P2)
-        axis = 0 if abs(calib.P2[1, 3]) > abs(calib.P2[0, 3]) else 1
+        axis = 0 if abs(P2[1, 3]) > abs(P2[0, 3]) else 1
         dy = np.abs(a[:, 0, axis] - b[:, 0, axis])
         dys.append(dy)
         per_view[v.name] = float(dy.max())
@@ -297,7 +304,7 @@ def calibrate_stereo(views: list[View], image_size: tuple[int, int], pattern: Pa
     depths = [float(np.asarray(t).ravel()[2]) for t in tvecs]
     calib.extra["board_depth_min"] = float(min(depths))
     thr = outlier_threshold(per_view.max(axis=1))
-    per = [{"name": v.name, "left_image": v.left, "right_image": v.right, "left": float(e[0]),
+    per: list[dict[str, Any]] = [{"name": v.name, "left_image": v.left, "right_image": v.right, "left": float(e[0]),
             "right": float(e[1]), "outlier": bool(max(e) > thr)} for v, e in zip(active, per_view)]
     for p in per:
         p["epipolar_error_max"] = epi["per_view"][p["name"]]

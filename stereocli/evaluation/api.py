@@ -97,9 +97,10 @@ def pair_scene(ground_truth: Path, options: EvalOptions, *, name: str | None, ki
                                resolution=options.scene_resolution())
     layout = ds.detect_layout(ground_truth)
     if layout == "kitti" or options.dataset == "kitti":
-        if not (kitti_name or name):
+        scene_name = kitti_name or name
+        if not scene_name:
             raise DataError(f"{ground_truth}: a KITTI root holds many scenes; name the one to score")
-        return ds.load_kitti(ground_truth, kitti_name or name)
+        return ds.load_kitti(ground_truth, scene_name)
     if layout is not None:
         return ds.load_scene(ground_truth, dataset=options.dataset, gt_scale=options.gt_scale,
                              resolution=options.scene_resolution())

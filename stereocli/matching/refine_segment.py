@@ -78,14 +78,15 @@ def local_consistency(state: MatchState, p: LocalConsistencyParams) -> None:
         # An empty todo stands for every pixel (no min_spread window to measure).
         todo = (_discontinuity_windows(disp, p.band or p.radius, p.min_spread, False) if p.min_spread > 0
                 else np.zeros((0, 0), np.bool_))
-        conf = None
+        shares = []
         for vertical in (False, True):
             bins = km.disparity_bins(disp, state.min_disp, state.ndisp)
             centres = np.flatnonzero(klc.line_centre_mask(bins, todo, p.band or p.radius, int(p.min_change), vertical))
             disp, share = klc.local_consistency_line(disp, bins, centres, left_packed, right_packed, state.min_disp,
                                                     state.ndisp, p.radius, *tables, int(p.min_change), vertical,
                                                     bool(p.right))
-            conf = share if conf is None else conf * share
+            shares.append(share)
+        conf = shares[0] * shares[1]
         conf[~np.isfinite(disp)] = 0.0
     else:
         # Without the right-image term every match weight is exp(−Δ/∞) = 1 exactly.
@@ -158,7 +159,7 @@ def _colour_steps(channels: int) -> np.ndarray:
     return np.arange(1020 * channels + 1) * (0.25 / channels)
 
 
-def _vote_tables(channels: int, p: LocalConsistencyParams):
+def _vote_tables(channels: int, p: LocalConsistencyParams) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     """Weights of the separable vote: spatial (2·radius + 1,) by offset, colour and match
     (float32, by summed channel difference in quarter grey levels) and the match weight of a
     point outside the right image."""

@@ -48,7 +48,7 @@ image.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, TypeVar
 
 import numpy as np
 
@@ -56,6 +56,8 @@ from .kernels.images import luma
 
 if TYPE_CHECKING:
     from .vertical_offset import VerticalOffset
+
+_T = TypeVar("_T")
 
 
 @dataclass
@@ -127,3 +129,12 @@ class MatchState:
         grey = luma(np.ascontiguousarray(img, dtype=np.float32))
         cache[which] = (img, grey)
         return grey
+
+
+def required(value: _T | None, error: str) -> _T:
+    """``value``, a part of the state that the stage contract sets before the calling stage runs
+    (e.g. ``disparity`` for a refinement); raises ``RuntimeError(error)`` when it is None, which
+    only a stage called out of order (outside the pipeline) meets."""
+    if value is None:
+        raise RuntimeError(error)
+    return value

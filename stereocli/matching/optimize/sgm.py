@@ -34,7 +34,7 @@ from ..kernels import sgm as ks
 from ..kernels import sgm_window as kw
 from ..kernels.images import half_resolution
 from ..kernels.maps import lr_check
-from ..state import MatchState, Wants, WinnerCosts
+from ..state import MatchState, Wants, WinnerCosts, required
 
 #: Largest value of the aggregated volume (``state.cost_max`` after SGM); sums stay below it.
 S_MAX = 65535
@@ -112,7 +112,9 @@ def coarse_disparity(state: MatchState, p: SGMParams, cost) -> np.ndarray:
         cost = replace(cost, params=coarse_params(cost.params))
     run_sgm(sub, replace(p, paths=p.coarse_paths or p.paths, coarse_levels=p.coarse_levels - 1), cost,
             coarse=p.coarse_levels > 1)
-    return lr_check(sub.disparity, sub.disparity_right, 1.0)
+    # run_sgm sets both maps (the coarse state wants the right view).
+    return lr_check(required(sub.disparity, "optimizer.sgm: the coarse level left no disparity map"),
+                    required(sub.disparity_right, "optimizer.sgm: the coarse level left no right-view map"), 1.0)
 
 
 def search_windows(coarse: np.ndarray, shape: tuple[int, int], min_disp: int, ndisp: int, margin: int,
@@ -147,7 +149,7 @@ def _integer_costs(cost_max: float, dtype, p: SGMParams) -> tuple[int, float, in
 def _quantized(state: MatchState, p: SGMParams) -> tuple[np.ndarray, int, float, int, int]:
     """``state.cost`` as integers for the kernels: ``(cq, mul, scale, p1, p2)``; releases the
     float volume (peak memory, see the module docstring)."""
-    cost = state.cost
+    cost = required(state.cost, "optimizer.sgm: no cost volume")  # (never: both callers run the cost stage first)
     exact = _integer_costs(state.cost_max, cost.dtype, p)
     if exact is not None:
         mul, scale, p1, p2 = exact
