@@ -51,6 +51,7 @@ class CalibOptions:
     alpha: float = 0.0  # rectification alpha stored in the file
 
     def mono_flags(self) -> int:
+        """Return the flags of the single-camera calibration (``cv2.calibrateCamera`` or ``cv2.fisheye.calibrate``)."""
         if self.fisheye:
             flags = cv2.CALIB_RECOMPUTE_EXTRINSIC | cv2.CALIB_FIX_SKEW
             return flags | (cv2.CALIB_FIX_PRINCIPAL_POINT if self.fix_principal_point else 0)
@@ -64,6 +65,7 @@ class CalibOptions:
         return flags
 
     def stereo_flags(self) -> int:
+        """Return the flags of the stereo solve: intrinsics fixed, or refined too with ``joint``."""
         if not self.joint:
             return cv2.CALIB_FIX_INTRINSIC
         flags = self.mono_flags() | cv2.CALIB_USE_INTRINSIC_GUESS
@@ -74,6 +76,8 @@ class CalibOptions:
 
 @dataclass
 class View:
+    """One pair whose images both show the target: the corners seen in both."""
+
     name: str
     left: str
     right: str
@@ -177,7 +181,8 @@ def _stereo(views: list[View], size, K1, D1, K2, D2, opts: CalibOptions):
             for o, a, b, rv, tv in zip(obj, il, ir, rvecs, tvecs):
                 pa, _ = cv2.fisheye.projectPoints(o, rv, tv, K1, D1)
                 Rb = R @ cv2.Rodrigues(rv)[0]
-                pb, _ = cv2.fisheye.projectPoints(o, cv2.Rodrigues(Rb)[0], R @ tv.reshape(3, 1) + T.reshape(3, 1), K2, D2)
+                pb, _ = cv2.fisheye.projectPoints(o, cv2.Rodrigues(Rb)[0], R @ tv.reshape(3, 1) + T.reshape(3, 1),
+                                                  K2, D2)
                 per_view.append([math.sqrt(np.mean(np.sum((pa - a) ** 2, -1))),
                                  math.sqrt(np.mean(np.sum((pb - b) ** 2, -1)))])
             return rms, K1, D1.ravel(), K2, D2.ravel(), R, T.ravel(), np.array(per_view), tvecs
@@ -200,11 +205,12 @@ def outlier_threshold(errors: np.ndarray) -> float:
 
 
 def rectified_epipolar_error(calib: StereoCalibration, views: list[View]) -> dict:
-    """``|y_left − y_right|`` (px) of all corresponding corners after rectification: ``mean``,
-    ``max``, ``points``, each view's max (``per_view``: name → px) and the corners above
-    :data:`EPIPOLAR_LIMIT` (``above_limit``: per view, ``name``, the two images, ``max`` and
-    ``corners``, each with its ``index`` in detection order, left-image ``x``/``y`` and ``dy``,
-    largest first).
+    """Return ``|y_left − y_right|`` (px) of all corresponding corners after rectification.
+
+    The dict holds ``mean``, ``max``, ``points``, each view's max (``per_view``: name → px) and
+    the corners above :data:`EPIPOLAR_LIMIT` (``above_limit``: per view, ``name``, the two images,
+    ``max`` and ``corners``, each with its ``index`` in detection order, left-image ``x``/``y`` and
+    ``dy``, largest first).
     """
     P2 = calib.P2
     if P2 is None:
@@ -232,8 +238,9 @@ def rectified_epipolar_error(calib: StereoCalibration, views: list[View]) -> dic
 
 
 def _epipolar_warning(above: list[dict]) -> str:
-    """The warning naming the views and corners whose rectified rows differ by more than
-    :data:`EPIPOLAR_LIMIT`.
+    """Return the warning naming the views and corners whose rectified rows differ by more than the limit.
+
+    The limit is :data:`EPIPOLAR_LIMIT`.
     """
     corners = sum(len(v["corners"]) for v in above)
     parts = []
@@ -265,7 +272,8 @@ def _warnings(calib: StereoCalibration, board_distance: float, n_views: int) -> 
                        f"{board_distance:.4g} {calib.units} (check --square and the pairing)")
     angle = rotation_angle_deg(calib.R, np.eye(3))
     if angle > 20:
-        out.append(f"cameras are rotated {angle:.1f} deg relative to each other; rectification will lose much of the image")
+        out.append(f"cameras are rotated {angle:.1f} deg relative to each other; "
+                   "rectification will lose much of the image")
     if n_views < RECOMMENDED_VIEWS:
         out.append(f"only {n_views} views used; {RECOMMENDED_VIEWS}+ with varied board poses are recommended")
     return out
@@ -349,11 +357,12 @@ def calibrate_stereo(views: list[View], image_size: tuple[int, int], pattern: Pa
 
 
 def format_report(report: dict) -> str:
-    """The human-readable report (``calibrate`` prints it on stdout)."""
+    """Return the human-readable report (``calibrate`` prints it on stdout)."""
     r = report
     u = r["units"]
     lines = [f"calibrated {r['views_used']} of {r['pairs_total']} pairs "
-             f"({r['pattern']['kind']} {r['pattern']['cols']}x{r['pattern']['rows']}, square {r['pattern']['square']:g} {u}, "
+             f"({r['pattern']['kind']} {r['pattern']['cols']}x{r['pattern']['rows']}, "
+             f"square {r['pattern']['square']:g} {u}, "
              f"image {r['image_size'][0]}x{r['image_size'][1]}, {r['model']})"]
     for item in r["not_found"]:
         lines.append(f"  not used: {item['image']}: {item['reason']}")
