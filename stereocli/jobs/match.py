@@ -53,7 +53,8 @@ _CONFIG_CACHE: dict[str, Any] = {}
 AUTO = "auto"
 
 
-def resolve_range(pair: StereoInput, ndisp: int | str | None, min_disp: int | None) -> tuple[int | None, int | None, dict]:
+def resolve_range(pair: StereoInput, ndisp: int | str | None,
+                  min_disp: int | None) -> tuple[int | None, int | None, dict]:
     """Disparity range for a pair: ``--ndisp N`` first, else its ``calib.txt``, else estimated.
 
     Returns ``(min_disp, ndisp, info)``; both are None when the range is to be estimated from the
@@ -303,7 +304,8 @@ def match_item(item: WorkItem) -> dict:
     left, right = _read_views(item)
     if left.shape[:2] != right.shape[:2]:
         raise DataError(
-            f"{item.name}: left {left.shape[1]}x{left.shape[0]} and right {right.shape[1]}x{right.shape[0]} differ in size"
+            f"{item.name}: left {left.shape[1]}x{left.shape[0]} and right {right.shape[1]}x{right.shape[0]} "
+            "differ in size"
         )
     if left.ndim != right.ndim:
         # One colour and one grey view: match in grey.
@@ -320,8 +322,9 @@ def match_item(item: WorkItem) -> dict:
     seconds = result.seconds
     min_disp, ndisp = result.range.min_disp, result.range.ndisp
     # The plan knows where a given range came from (--ndisp or calib.txt).
-    survey: dict[str, Any] = {"range": dict(result.range.as_dict(), source=opts["range_source"]), "alignment": result.alignment,
-              "warnings": result.warnings, "survey_seconds": result.survey_seconds}
+    survey: dict[str, Any] = {"range": dict(result.range.as_dict(), source=opts["range_source"]),
+                              "alignment": result.alignment, "warnings": result.warnings,
+                              "survey_seconds": result.survey_seconds}
 
     out = item.outputs
     write_pfm(out["disparity"], result.disparity)

@@ -211,8 +211,8 @@ def triangulate_item(item: WorkItem) -> dict:
     geom = result.geometry
     out = item.outputs
     comments = [f"stereocli triangulate: units {geom.units}; frame {FRAME}",
-                f"Z = f*B/(d + doffs), f {geom.f:.6g} px, B {geom.baseline:.6g} {geom.units}, doffs {geom.doffs:.6g} px, "
-                f"cx {geom.cx:.6g}, cy {geom.cy:.6g}"]
+                f"Z = f*B/(d + doffs), f {geom.f:.6g} px, B {geom.baseline:.6g} {geom.units}, "
+                f"doffs {geom.doffs:.6g} px, cx {geom.cx:.6g}, cy {geom.cy:.6g}"]
     if out["cloud"].lower().endswith(".npy"):
         with atomic_path(out["cloud"]) as tmp, open(tmp, "wb") as fh:
             np.save(fh, result.points)

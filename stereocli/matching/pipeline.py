@@ -28,9 +28,10 @@ volume path, so the plan does not depend on it).
 
 Integer winners: the volume refinements (``subpixel``) run before every map stage, so a map
 stage sees sub-pixel maps. A stage that wants the optimizer's integer maps instead says so
-with its ``keeps_integer`` trait (``lr_check`` with ``compare: integer``); the pipeline then copies ``disparity``/``disparity_right`` into
-``integer_disparity``/``integer_disparity_right`` right after the optimizer, before the
-volume refinements, and stitches them with the maps (two extra (H, W) float32 maps).
+with its ``keeps_integer`` trait (``lr_check`` with ``compare: integer``); the pipeline then
+copies ``disparity``/``disparity_right`` into ``integer_disparity``/``integer_disparity_right``
+right after the optimizer, before the volume refinements, and stitches them with the maps (two
+extra (H, W) float32 maps).
 """
 
 from __future__ import annotations
@@ -328,7 +329,8 @@ def prepare(
     and ``config`` (never on threads or workers), so every executor stitches the same strips.
     """
     if left.shape != right.shape:
-        raise DataError(f"left is {left.shape[1]}x{left.shape[0]}, right is {right.shape[1]}x{right.shape[0]}: sizes differ")
+        raise DataError(f"left is {left.shape[1]}x{left.shape[0]}, right is {right.shape[1]}x{right.shape[0]}: "
+                        "sizes differ")
     if ndisp < 1:
         raise DataError(f"ndisp must be at least 1 (got {ndisp})")
     shape = left.shape[:2]

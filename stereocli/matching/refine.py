@@ -36,8 +36,10 @@ def _cost(state: MatchState, stage: str) -> np.ndarray:
 
 @dataclass(frozen=True)
 class SubpixelParams:
-    method: str = param("parabola", "curve fitted through the costs at d-1, d, d+1", choices=("parabola", "equiangular"))
-    right: bool = param(True, "also refine the right-view disparity (the --right output and what lr_check then compares with); false keeps its integer winners")
+    method: str = param("parabola", "curve fitted through the costs at d-1, d, d+1",
+                        choices=("parabola", "equiangular"))
+    right: bool = param(True, "also refine the right-view disparity (the --right output and what lr_check then "
+                        "compares with); false keeps its integer winners")
 
 
 def _subpixel_on_winner_costs(state: MatchState, p: SubpixelParams) -> None:
@@ -80,8 +82,11 @@ def subpixel(state: MatchState, p: SubpixelParams) -> None:
 
 @dataclass(frozen=True)
 class LRCheckParams:
-    max_diff: float = param(1.0, "largest accepted |d_left - d_right| at corresponding pixels", unit="px", low=0.0, high=100.0)
-    compare: str = param("final", "which maps are checked: 'final' = the maps as refined so far (after subpixel); 'integer' = the optimizer's integer winners, before any sub-pixel step (Hosni et al. 2013), the rejected pixels being removed from the current map", choices=("final", "integer"))
+    max_diff: float = param(1.0, "largest accepted |d_left - d_right| at corresponding pixels",
+                            unit="px", low=0.0, high=100.0)
+    compare: str = param("final", "which maps are checked: 'final' = the maps as refined so far (after subpixel); "
+                         "'integer' = the optimizer's integer winners, before any sub-pixel step (Hosni et al. 2013), "
+                         "the rejected pixels being removed from the current map", choices=("final", "integer"))
 
 
 def _compares_integer(p: LRCheckParams) -> bool:
@@ -143,7 +148,8 @@ def fill(state: MatchState, params) -> None:
 
 @dataclass(frozen=True)
 class UniquenessParams:
-    ratio: float = param(0.05, "reject when a non-adjacent hypothesis costs less than best / (1 - ratio) (OpenCV uniquenessRatio / 100)", low=0.0, high=0.9)
+    ratio: float = param(0.05, "reject when a non-adjacent hypothesis costs less than best / (1 - ratio) "
+                         "(OpenCV uniquenessRatio / 100)", low=0.0, high=0.9)
 
 
 def _uniqueness_on_winner_costs(state: MatchState, p: UniquenessParams) -> None:
@@ -168,8 +174,10 @@ def uniqueness(state: MatchState, p: UniquenessParams) -> None:
 
 @dataclass(frozen=True)
 class ConfidenceParams:
-    lr_scale: float = param(1.0, "left-right disagreement at which the LR factor falls to 1/e", unit="px", low=0.01, high=100.0)
-    margin_scale: float = param(0.1, "cost margin 1 - best/second at which the uniqueness factor reaches 1", low=0.001, high=1.0)
+    lr_scale: float = param(1.0, "left-right disagreement at which the LR factor falls to 1/e",
+                            unit="px", low=0.01, high=100.0)
+    margin_scale: float = param(0.1, "cost margin 1 - best/second at which the uniqueness factor reaches 1",
+                                low=0.001, high=1.0)
 
 
 def _confidence_on_winner_costs(state: MatchState, p: ConfidenceParams) -> None:
@@ -210,7 +218,8 @@ def confidence(state: MatchState, p: ConfidenceParams) -> None:
 @dataclass(frozen=True)
 class SpeckleParams:
     max_size: int = param(100, "largest connected region (px) removed as a speckle", unit="px", low=0, high=100000)
-    max_diff: float = param(1.0, "neighbours differing by at most this belong to the same region", unit="px", low=0.0, high=100.0)
+    max_diff: float = param(1.0, "neighbours differing by at most this belong to the same region",
+                            unit="px", low=0.0, high=100.0)
 
 
 @register("refinement", "speckle", SpeckleParams, traits=StageTraits(map_copies=6))
@@ -233,8 +242,10 @@ def speckle(state: MatchState, p: SpeckleParams) -> None:
 
 @dataclass(frozen=True)
 class InterpolateParams:
-    max_dist: int = param(0, "search at most this far for valid neighbours (0 = unlimited)", unit="px", low=0, high=100000)
-    tol: float = param(1.0, "a hole is a mismatch when a right pixel maps back to it within tol", unit="px", low=0.0, high=10.0)
+    max_dist: int = param(0, "search at most this far for valid neighbours (0 = unlimited)",
+                          unit="px", low=0, high=100000)
+    tol: float = param(1.0, "a hole is a mismatch when a right pixel maps back to it within tol",
+                       unit="px", low=0.0, high=10.0)
 
 
 @register("refinement", "interpolate", InterpolateParams,
@@ -266,7 +277,8 @@ def hole_labels(state: MatchState, tol: float) -> np.ndarray:
 class BilateralParams:
     radius: int = param(3, "window half size", unit="px", low=1, high=20)
     sigma_space: float = param(3.0, "spatial Gaussian sigma", unit="px", low=0.1, high=50.0)
-    sigma_color: float = param(10.0, "intensity Gaussian sigma on the left grey image", unit="grey levels", low=0.1, high=255.0)
+    sigma_color: float = param(10.0, "intensity Gaussian sigma on the left grey image",
+                               unit="grey levels", low=0.1, high=255.0)
 
 
 @register("refinement", "bilateral", BilateralParams)
@@ -281,9 +293,12 @@ def bilateral(state: MatchState, p: BilateralParams) -> None:
 class PlaneSmoothParams:
     radius: int = param(10, "half length of the row and column segments fitted", unit="px", low=1, high=50)
     sigma_space: float = param(10.0, "spatial Gaussian sigma along the segment", unit="px", low=0.1, high=100.0)
-    color_range: float = param(20.0, "colour distance (Euclidean, over the channels) beyond which a neighbour gets no weight", unit="grey levels", low=0.1, high=500.0)
-    gate: float = param(1.0, "neighbours whose disparity differs from the centre's by more than this are left out", unit="px", low=0.0, high=100.0)
-    color: bool = param(True, "colour distance on the colour image; false: on the grey image (about a third of the distance work, same scores on MiddEval3)")
+    color_range: float = param(20.0, "colour distance (Euclidean, over the channels) beyond which a neighbour gets no "
+                               "weight", unit="grey levels", low=0.1, high=500.0)
+    gate: float = param(1.0, "neighbours whose disparity differs from the centre's by more than this are left out",
+                        unit="px", low=0.0, high=100.0)
+    color: bool = param(True, "colour distance on the colour image; false: on the grey image (about a third of the "
+                        "distance work, same scores on MiddEval3)")
     step: int = param(1, "fit through every step-th neighbour of the segment (2: half the work)", low=1, high=10)
 
 

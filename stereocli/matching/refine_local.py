@@ -46,8 +46,10 @@ def single_matching_phase(state: MatchState, params) -> None:
 
 @dataclass(frozen=True)
 class TextureParams:
-    window: tuple[int, int] = param((9, 9), "window (height, width) of the local variance, odd", unit="px", low=3, high=101)
-    min_std: float = param(2.0, "invalidate pixels whose local grey-level standard deviation is below this", unit="grey levels", low=0.0, high=128.0)
+    window: tuple[int, int] = param((9, 9), "window (height, width) of the local variance, odd",
+                                    unit="px", low=3, high=101)
+    min_std: float = param(2.0, "invalidate pixels whose local grey-level standard deviation is below this",
+                           unit="grey levels", low=0.0, high=128.0)
 
     def __post_init__(self):
         from .cost import check_odd_window
@@ -78,7 +80,8 @@ def texture(state: MatchState, p: TextureParams) -> None:
 class FillWeightedMedianParams:
     radius: int = param(9, "window radius of the weighted median", unit="px", low=1, high=50)
     sigma_s: float = param(9.0, "spatial scale σ_s", unit="px", low=0.1, high=100.0)
-    sigma_c: float = param(25.5, "colour scale σ_c (0.1 on [0, 1] intensities)", unit="grey levels", low=0.1, high=255.0)
+    sigma_c: float = param(25.5, "colour scale σ_c (0.1 on [0, 1] intensities)",
+                           unit="grey levels", low=0.1, high=255.0)
 
 
 @register("refinement", "fill_weighted_median", FillWeightedMedianParams)

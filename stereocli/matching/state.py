@@ -100,7 +100,8 @@ class MatchState:
     disparity: np.ndarray | None = None  # (H, W) float32 px, +inf invalid
     disparity_right: np.ndarray | None = None  # (H, W) float32 px, right-referenced, +inf invalid
     confidence: np.ndarray | None = None  # (H, W) float32 in [0, 1]
-    integer_disparity: np.ndarray | None = None  # (H, W) float32: ``disparity`` as the optimizer left it (if keep_integer)
+    # (H, W) float32: ``disparity`` as the optimizer left it (if keep_integer)
+    integer_disparity: np.ndarray | None = None
     integer_disparity_right: np.ndarray | None = None  # (H, W) float32: the same for ``disparity_right``
     mirrored_disparity: np.ndarray | None = None  # (H, W) float32 px, right-referenced: for a ``needs_mirrored`` stage
     wants: Wants = field(default_factory=Wants)  # what later stages and outputs need

@@ -272,7 +272,8 @@ def missing_build_advice() -> str:
         return ""
     checkout = (PACKAGE_DIR.parent / "pyproject.toml").is_file()
     fix = ("python -m stereocli.runtime.aot" if checkout else
-           "pip install --force-reinstall --no-deps <stereocli source> with a C compiler and a numba that has numba.pycc")
+           "pip install --force-reinstall --no-deps <stereocli source> with a C compiler "
+           "and a numba that has numba.pycc")
     return (f"the kernels were not compiled ahead of time ({_BUILD.why_not}); numba compiles them now, once "
             f"(later runs load them from its cache); to build them: {fix}")
 

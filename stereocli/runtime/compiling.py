@@ -27,7 +27,8 @@ def prange_only() -> dict:
 
     With ``parallel=True`` numba also turns every array allocation or expression in the kernel
     (``np.full``, ``np.zeros``, copies, sums) into a parallel loop of its own: each one is
-    compiled separately (in the first run) and launched on the threads for a few elements' work. (A fresh dict per call: numba consumes it.)
+    compiled separately (in the first run) and launched on the threads for a few elements' work.
+    (A fresh dict per call: numba consumes it.)
     """
     return {"comprehension": False, "reduction": False, "inplace_binop": False, "setitem": False, "numpy": False,
             "stencil": False, "fusion": False, "prange": True}

@@ -47,20 +47,34 @@ CoarseLevel = Callable[[MatchState, "SGMParams", object], np.ndarray]
 
 @dataclass(frozen=True)
 class SGMParams:
-    paths: int = param(8, "number of path directions: 2 = scanlines only (fast, streaky), 4, 8, 16", choices=(2, 4, 8, 16))
-    p1: float = param(0.33, "penalty for a 1-px disparity change, as a fraction of the cost's range (cost_max)", unit="× cost_max", low=0.0, high=10.0)
-    p2: float = param(1.75, "penalty for larger disparity jumps, as a fraction of cost_max (clamped to ≥ p1)", unit="× cost_max", low=0.0, high=20.0)
-    p2_gamma: float = param(16.0, "adaptive P2 = max(P1, P2·γ/(γ+|ΔI|)) from the left image gradient along the path; 0 = constant P2", unit="grey levels", low=0.0, high=1000.0)
+    paths: int = param(8, "number of path directions: 2 = scanlines only (fast, streaky), 4, 8, 16",
+                       choices=(2, 4, 8, 16))
+    p1: float = param(0.33, "penalty for a 1-px disparity change, as a fraction of the cost's range (cost_max)",
+                      unit="× cost_max", low=0.0, high=10.0)
+    p2: float = param(1.75, "penalty for larger disparity jumps, as a fraction of cost_max (clamped to ≥ p1)",
+                      unit="× cost_max", low=0.0, high=20.0)
+    p2_gamma: float = param(16.0, "adaptive P2 = max(P1, P2·γ/(γ+|ΔI|)) from the left image gradient along the path; "
+                            "0 = constant P2", unit="grey levels", low=0.0, high=1000.0)
     levels: int = param(255, "quantisation levels for the matching costs (255 keeps them in uint8)", low=15, high=4095)
-    coarse: bool = param(False, "coarse-to-fine search: a full-range SGM at half resolution sets each pixel's hypotheses")
-    margin: int = param(3, "coarse-to-fine: hypotheses beyond the coarse neighbourhood's range, each side", unit="px", low=0, high=64)
+    coarse: bool = param(False, "coarse-to-fine search: a full-range SGM at half resolution sets each pixel's "
+                         "hypotheses")
+    margin: int = param(3, "coarse-to-fine: hypotheses beyond the coarse neighbourhood's range, each side",
+                        unit="px", low=0, high=64)
     radius: int = param(3, "coarse-to-fine: neighbourhood radius at the coarse level", unit="coarse px", low=0, high=8)
-    max_window: int = param(0, "coarse-to-fine: most hypotheses per pixel (0 = as the neighbourhood needs)", low=0, high=4096)
-    align: int = param(8, "coarse-to-fine: the kernel computes each window within a run of hypotheses on this grid (whole vector loops; same result)", low=1, high=64)
-    coarse_paths: int = param(0, "coarse-to-fine: path directions at the coarse level (0 = paths)", choices=(0, 2, 4, 8, 16))
-    coarse_min_ndisp: int = param(0, "coarse-to-fine only for ranges of more disparities than this (a narrow range leaves the windows little to cut, and the full-range search is then faster)", low=0, high=4096)
-    coarse_min_volume: float = param(0.0, "coarse-to-fine only for cost volumes of more than this many million cells (H·W·D): on a small volume the coarse level costs more than the windows save, and the full-range search is faster", unit="M cells", low=0.0, high=1e6)
-    coarse_levels: int = param(1, "coarse-to-fine: coarser levels below full resolution (each halves the image; only the coarsest searches the full range)", low=1, high=4)
+    max_window: int = param(0, "coarse-to-fine: most hypotheses per pixel (0 = as the neighbourhood needs)",
+                            low=0, high=4096)
+    align: int = param(8, "coarse-to-fine: the kernel computes each window within a run of hypotheses on this grid "
+                       "(whole vector loops; same result)", low=1, high=64)
+    coarse_paths: int = param(0, "coarse-to-fine: path directions at the coarse level (0 = paths)",
+                              choices=(0, 2, 4, 8, 16))
+    coarse_min_ndisp: int = param(0, "coarse-to-fine only for ranges of more disparities than this (a narrow range "
+                                  "leaves the windows little to cut, and the full-range search is then faster)",
+                                  low=0, high=4096)
+    coarse_min_volume: float = param(0.0, "coarse-to-fine only for cost volumes of more than this many million cells "
+                                     "(H·W·D): on a small volume the coarse level costs more than the windows save, "
+                                     "and the full-range search is faster", unit="M cells", low=0.0, high=1e6)
+    coarse_levels: int = param(1, "coarse-to-fine: coarser levels below full resolution (each halves the image; only "
+                               "the coarsest searches the full range)", low=1, high=4)
 
 
 def quantization(cost_max: float, paths: int, p1: float, p2: float, levels: int) -> tuple[float, int, int, int]:
