@@ -398,8 +398,8 @@ def match(
         key = hint.removeprefix("--set ").split("=", 1)[0]
         names = ", ".join(c.stage.name for c in cfg.refinement) or "none"
         raise ConfigError(_named(name, f"confidence: the configured pipeline produces no confidence map (refinement: "
-                                       f"{names}); add a refinement stage that does, e.g. set={{{key!r}: 'confidence'}} "
-                                       f"({hint} on the command line)"))
+                                       f"{names}); add a refinement stage that does, "
+                                       f"e.g. set={{{key!r}: 'confidence'}} ({hint} on the command line)"))
     lo, nd, source = _given_range(ndisp, min_disp, calib, name)
     with threads_for_call(cfg.runtime.threads):
         # With the range known, a config whose row_align measures the rows leaves the alignment
@@ -696,8 +696,10 @@ def _label(value: Any, default: str) -> str:
 
 
 def _valid_mask(value: np.ndarray | PathLike, shape: tuple[int, ...]) -> np.ndarray:
-    """A valid mask as (H, W) bool: an array as it is (nonzero valid), a file read as
-    ``valid0.png`` holds it (above 127 valid).
+    """Return a valid mask as (H, W) bool.
+
+    An array is taken as it is (nonzero valid), a file is read as ``valid0.png`` holds it (above
+    127 valid).
     """
     if isinstance(value, (str, os.PathLike)):
         mask = read_image(value, gray=True) > 127

@@ -314,7 +314,8 @@ def _stage_index(stages_: list[dict], section: str, target: str, where: str, *, 
     matches = [i for i, s in enumerate(stages_) if s.get("name") == target]
     if not matches:
         listed = [s.get("name") for s in stages_]
-        raise ConfigError(f"{where}: no stage {excerpt(target, quote=True)} in {section}" + _suggest(str(target), listed))
+        raise ConfigError(f"{where}: no stage {excerpt(target, quote=True)} in {section}"
+                          + _suggest(str(target), listed))
     if len(matches) > 1:
         # E.g. quality's two geodesic_vote stages (rows, columns): editing the first one
         # silently would leave the other as it was.

@@ -35,6 +35,10 @@ import gc
 import importlib.abc
 import os
 import sys
+from typing import IO, TYPE_CHECKING, TextIO
+
+if TYPE_CHECKING:
+    from typing import Callable
 
 _M_TRIM_THRESHOLD = -1
 _M_MMAP_THRESHOLD = -3
@@ -345,10 +349,10 @@ def worker_signals(parent_pid: int, interval: float = 0.5) -> None:
 
 
 class _NoiseState:
-    file = None  # the temporary file fd 2 points to while capturing
+    file: IO[bytes] | None = None  # the temporary file fd 2 points to while capturing
     saved_fd: int | None = None  # the real stderr
-    old_stderr = None
-    old_showwarning = None
+    old_stderr: TextIO | None = None
+    old_showwarning: Callable[..., None] | None = None
     sink: list[str] = []  # lines routed here while not capturing (library use, tests)
 
 
@@ -411,13 +415,17 @@ class capture_native_stderr:
 
         if not self.enabled:
             return
+        f, saved_fd = _NoiseState.file, _NoiseState.saved_fd
+        old_stderr, old_showwarning = _NoiseState.old_stderr, _NoiseState.old_showwarning
+        if f is None or saved_fd is None or old_stderr is None or old_showwarning is None:
+            raise RuntimeError("capture_native_stderr: no capture to end")  # (never: enabled, __enter__ set them)
         with deferred_interrupts():  # a signal now waits until stderr is restored
             sys.stderr.flush()
-            warnings.showwarning = _NoiseState.old_showwarning
-            sys.stderr = _NoiseState.old_stderr
-            os.dup2(_NoiseState.saved_fd, 2)
-            os.close(_NoiseState.saved_fd)
-            f, _NoiseState.file, _NoiseState.saved_fd = _NoiseState.file, None, None
+            warnings.showwarning = old_showwarning
+            sys.stderr = old_stderr
+            os.dup2(saved_fd, 2)
+            os.close(saved_fd)
+            _NoiseState.file, _NoiseState.saved_fd = None, None
             f.seek(0)
             data = f.read(1 << 20)
             f.close()

@@ -124,12 +124,13 @@ def geometry_from_calibration(calib: StereoCalibration, *, use_q: bool = False) 
         if calib.Q is None:
             raise DataError("calibration has no Q matrix (needed for --use-q)")
         return geometry_from_q(calib.Q, calib.units)
-    if not calib.is_rectified:
+    P1, P2 = calib.P1, calib.P2
+    if P1 is None or P2 is None:  # not calib.is_rectified
         raise DataError("calibration has no rectification (P1, P2 or Q): triangulate needs the calibration "
                         "of the rectified pair (rectify writes calib.txt beside im0.png)")
-    P1, P2 = calib.P1, calib.P2
     if abs(P2[1, 3]) > abs(P2[0, 3]):
-        raise DataError("calibration describes a vertical rig (P2 shifted along y); only horizontal pairs are supported")
+        raise DataError("calibration describes a vertical rig (P2 shifted along y); "
+                        "only horizontal pairs are supported")
     if P2[0, 0] == 0:
         raise DataError("calibration: P2[0,0] (focal length) is zero")
     return RectifiedGeometry(f=float(P1[0, 0]), cx=float(P1[0, 2]), cy=float(P1[1, 2]),

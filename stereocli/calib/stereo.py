@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, field
+from typing import Any
 
 import cv2
 import numpy as np
@@ -50,6 +51,7 @@ class CalibOptions:
     alpha: float = 0.0  # rectification alpha stored in the file
 
     def mono_flags(self) -> int:
+        """Return the flags of the single-camera calibration (``cv2.calibrateCamera`` or ``cv2.fisheye.calibrate``)."""
         if self.fisheye:
             flags = cv2.CALIB_RECOMPUTE_EXTRINSIC | cv2.CALIB_FIX_SKEW
             return flags | (cv2.CALIB_FIX_PRINCIPAL_POINT if self.fix_principal_point else 0)
@@ -63,6 +65,7 @@ class CalibOptions:
         return flags
 
     def stereo_flags(self) -> int:
+        """Return the flags of the stereo solve: intrinsics fixed, or refined too with ``joint``."""
         if not self.joint:
             return cv2.CALIB_FIX_INTRINSIC
         flags = self.mono_flags() | cv2.CALIB_USE_INTRINSIC_GUESS
@@ -73,6 +76,8 @@ class CalibOptions:
 
 @dataclass
 class View:
+    """One pair whose images both show the target: the corners seen in both."""
+
     name: str
     left: str
     right: str
@@ -116,16 +121,19 @@ def build_views(pairs: list[tuple[str, str, str]], detections: dict[str, Detecti
         for d in (dl, dr):
             if not d.found:
                 missing.append({"image": d.path, "reason": d.reason})
-        if not (dl.found and dr.found):
+        left_corners, right_corners = dl.corners, dr.corners
+        if left_corners is None or right_corners is None:  # not (dl.found and dr.found)
             continue
         if dl.ids is None and dr.ids is None:
-            views.append(View(name, left, right, obj_all, dl.corners, dr.corners))
+            views.append(View(name, left, right, obj_all, left_corners, right_corners))
             continue
+        if dl.ids is None or dr.ids is None:  # (never: both images are searched for the same pattern)
+            raise DataError(f"{left} + {right}: ChArUco ids in one image only")
         common, il, ir = np.intersect1d(dl.ids, dr.ids, return_indices=True)
         if common.size < 6:
             missing.append({"image": f"{left} + {right}", "reason": f"only {common.size} ChArUco corners seen by both"})
             continue
-        views.append(View(name, left, right, obj_all[common], dl.corners[il], dr.corners[ir]))
+        views.append(View(name, left, right, obj_all[common], left_corners[il], right_corners[ir]))
     return views, missing, size
 
 
@@ -173,7 +181,8 @@ def _stereo(views: list[View], size, K1, D1, K2, D2, opts: CalibOptions):
             for o, a, b, rv, tv in zip(obj, il, ir, rvecs, tvecs):
                 pa, _ = cv2.fisheye.projectPoints(o, rv, tv, K1, D1)
                 Rb = R @ cv2.Rodrigues(rv)[0]
-                pb, _ = cv2.fisheye.projectPoints(o, cv2.Rodrigues(Rb)[0], R @ tv.reshape(3, 1) + T.reshape(3, 1), K2, D2)
+                pb, _ = cv2.fisheye.projectPoints(o, cv2.Rodrigues(Rb)[0], R @ tv.reshape(3, 1) + T.reshape(3, 1),
+                                                  K2, D2)
                 per_view.append([math.sqrt(np.mean(np.sum((pa - a) ** 2, -1))),
                                  math.sqrt(np.mean(np.sum((pb - b) ** 2, -1)))])
             return rms, K1, D1.ravel(), K2, D2.ravel(), R, T.ravel(), np.array(per_view), tvecs
@@ -196,12 +205,16 @@ def outlier_threshold(errors: np.ndarray) -> float:
 
 
 def rectified_epipolar_error(calib: StereoCalibration, views: list[View]) -> dict:
-    """``|y_left − y_right|`` (px) of all corresponding corners after rectification: ``mean``,
-    ``max``, ``points``, each view's max (``per_view``: name → px) and the corners above
-    :data:`EPIPOLAR_LIMIT` (``above_limit``: per view, ``name``, the two images, ``max`` and
-    ``corners``, each with its ``index`` in detection order, left-image ``x``/``y`` and ``dy``,
-    largest first).
+    """Return ``|y_left − y_right|`` (px) of all corresponding corners after rectification.
+
+    The dict holds ``mean``, ``max``, ``points``, each view's max (``per_view``: name → px) and
+    the corners above :data:`EPIPOLAR_LIMIT` (``above_limit``: per view, ``name``, the two images,
+    ``max`` and ``corners``, each with its ``index`` in detection order, left-image ``x``/``y`` and
+    ``dy``, largest first).
     """
+    P2 = calib.P2
+    if P2 is None:
+        raise DataError("calibration has no rectification (P1, P2): no rectified epipolar error")
     undistort = cv2.fisheye.undistortPoints if calib.model == "fisheye" else cv2.undistortPoints
     dys, per_view, above = [], {}, []
     for v in views:
@@ -209,7 +222,7 @@ def rectified_epipolar_error(calib: StereoCalibration, views: list[View]) -> dic
         D2 = calib.D2[:4] if calib.model == "fisheye" else calib.D2
         a = undistort(v.left_points.reshape(-1, 1, 2).astype(np.float64), calib.K1, D1, R=calib.R1, P=calib.P1)
         b = undistort(v.right_points.reshape(-1, 1, 2).astype(np.float64), calib.K2, D2, R=calib.R2, P=calib.P2)
-        axis = 0 if abs(calib.P2[1, 3]) > abs(calib.P2[0, 3]) else 1
+        axis = 0 if abs(P2[1, 3]) > abs(P2[0, 3]) else 1
         dy = np.abs(a[:, 0, axis] - b[:, 0, axis])
         dys.append(dy)
         per_view[v.name] = float(dy.max())
@@ -225,8 +238,9 @@ def rectified_epipolar_error(calib: StereoCalibration, views: list[View]) -> dic
 
 
 def _epipolar_warning(above: list[dict]) -> str:
-    """The warning naming the views and corners whose rectified rows differ by more than
-    :data:`EPIPOLAR_LIMIT`.
+    """Return the warning naming the views and corners whose rectified rows differ by more than the limit.
+
+    The limit is :data:`EPIPOLAR_LIMIT`.
     """
     corners = sum(len(v["corners"]) for v in above)
     parts = []
@@ -258,7 +272,8 @@ def _warnings(calib: StereoCalibration, board_distance: float, n_views: int) -> 
                        f"{board_distance:.4g} {calib.units} (check --square and the pairing)")
     angle = rotation_angle_deg(calib.R, np.eye(3))
     if angle > 20:
-        out.append(f"cameras are rotated {angle:.1f} deg relative to each other; rectification will lose much of the image")
+        out.append(f"cameras are rotated {angle:.1f} deg relative to each other; "
+                   "rectification will lose much of the image")
     if n_views < RECOMMENDED_VIEWS:
         out.append(f"only {n_views} views used; {RECOMMENDED_VIEWS}+ with varied board poses are recommended")
     return out
@@ -297,7 +312,7 @@ def calibrate_stereo(views: list[View], image_size: tuple[int, int], pattern: Pa
     depths = [float(np.asarray(t).ravel()[2]) for t in tvecs]
     calib.extra["board_depth_min"] = float(min(depths))
     thr = outlier_threshold(per_view.max(axis=1))
-    per = [{"name": v.name, "left_image": v.left, "right_image": v.right, "left": float(e[0]),
+    per: list[dict[str, Any]] = [{"name": v.name, "left_image": v.left, "right_image": v.right, "left": float(e[0]),
             "right": float(e[1]), "outlier": bool(max(e) > thr)} for v, e in zip(active, per_view)]
     for p in per:
         p["epipolar_error_max"] = epi["per_view"][p["name"]]
@@ -342,11 +357,12 @@ def calibrate_stereo(views: list[View], image_size: tuple[int, int], pattern: Pa
 
 
 def format_report(report: dict) -> str:
-    """The human-readable report (``calibrate`` prints it on stdout)."""
+    """Return the human-readable report (``calibrate`` prints it on stdout)."""
     r = report
     u = r["units"]
     lines = [f"calibrated {r['views_used']} of {r['pairs_total']} pairs "
-             f"({r['pattern']['kind']} {r['pattern']['cols']}x{r['pattern']['rows']}, square {r['pattern']['square']:g} {u}, "
+             f"({r['pattern']['kind']} {r['pattern']['cols']}x{r['pattern']['rows']}, "
+             f"square {r['pattern']['square']:g} {u}, "
              f"image {r['image_size'][0]}x{r['image_size'][1]}, {r['model']})"]
     for item in r["not_found"]:
         lines.append(f"  not used: {item['image']}: {item['reason']}")

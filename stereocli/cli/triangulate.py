@@ -16,7 +16,8 @@ from .common import print_json, run_batch_command, unpaired_failures
 @click.option("-o", "--output", required=True, type=click.Path(),
               help="OUT.ply / OUT.npy for one disparity file, else a folder receiving <name>/cloud.ply, depth.pfm.")
 @click.option("--calib", "calib_path", type=click.Path(),
-              help="Calibration of the rectified pair (calib.txt, OpenCV, ROS); default: calib.txt beside the disparity.")
+              help="Calibration of the rectified pair (calib.txt, OpenCV, ROS); "
+                   "default: calib.txt beside the disparity.")
 @click.option("--image", type=click.Path(dir_okay=False), help="Left image for colours (default: im0.png beside it).")
 @click.option("--scenes", type=click.Path(file_okay=False),
               help="The pairs (e.g. rectify's output, any layout match reads) whose calib.txt and left image "

@@ -52,7 +52,7 @@ def evaluate(
     options: EvalOptions | None = None,
     scorer: SceneScorer | None = None,
 ) -> EvalReport:
-    """What ``stereocli eval RESULTS GROUND_TRUTH`` does: pair mode or folder mode.
+    """Do what ``stereocli eval RESULTS GROUND_TRUTH`` does: pair mode or folder mode.
 
     Pair mode (RESULTS is a file, or a folder holding ``disp0*.pfm`` itself): errors raise
     :class:`DataError`; the one pair is scored in-process. Folder mode: per-scene failures are
@@ -88,18 +88,21 @@ def evaluate(
 
 def pair_scene(ground_truth: Path, options: EvalOptions, *, name: str | None, kitti_name: str | None = None,
                label: str = "estimate") -> ds.Scene:
-    """The GT scene to score one estimate against: a GT file, a scene folder, the scene
-    ``kitti_name`` (default ``name``) of a KITTI root, or the scene ``name`` of a folder of
-    scenes (exact, then case-insensitive). ``label`` names the estimate in errors.
+    """Return the GT scene to score one estimate against.
+
+    That is a GT file, a scene folder, the scene ``kitti_name`` (default ``name``) of a KITTI root,
+    or the scene ``name`` of a folder of scenes (exact, then case-insensitive). ``label`` names the
+    estimate in errors.
     """
     if ground_truth.is_file():
         return ds.load_gt_file(ground_truth, dataset=options.dataset, gt_scale=options.gt_scale,
                                resolution=options.scene_resolution())
     layout = ds.detect_layout(ground_truth)
     if layout == "kitti" or options.dataset == "kitti":
-        if not (kitti_name or name):
+        scene_name = kitti_name or name
+        if not scene_name:
             raise DataError(f"{ground_truth}: a KITTI root holds many scenes; name the one to score")
-        return ds.load_kitti(ground_truth, kitti_name or name)
+        return ds.load_kitti(ground_truth, scene_name)
     if layout is not None:
         return ds.load_scene(ground_truth, dataset=options.dataset, gt_scale=options.gt_scale,
                              resolution=options.scene_resolution())

@@ -123,7 +123,7 @@ def folder_report(plan: FolderPlan, outcomes: Sequence[dict[str, Any]], options:
     An outcome of ``{"failure": message}`` alone (a scene whose scoring crashed) is a failure.
     Raises :class:`ConfigError` when a scene reported a configuration error.
     """
-    outcomes = iter(outcomes)
+    remaining = iter(outcomes)
     scenes: list[SceneResult] = []
     failures: list[dict[str, str]] = []
     resolutions: set[str] = set()
@@ -131,7 +131,7 @@ def folder_report(plan: FolderPlan, outcomes: Sequence[dict[str, Any]], options:
         if not isinstance(slot, SceneTask):
             failures.append(slot)
             continue
-        done = next(outcomes)
+        done = next(remaining)
         if done.get("config_error"):
             raise ConfigError(done["config_error"])
         if done.get("resolution"):

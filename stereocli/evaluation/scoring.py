@@ -261,8 +261,9 @@ def rules_text(kinds: Sequence[str], options: EvalOptions, resolutions: Sequence
     if res:
         letters = "/".join(res)
         if options.threshold_units == "full":
+            factors = "/".join(str(ds.RESOLUTION_FACTORS[r]) for r in res)
             parts.append(f"GT at {letters} resolution (full-resolution GT not available): scored at {letters}, "
-                         f"thresholds and errors in FULL-resolution px (errors x{'/'.join(str(ds.RESOLUTION_FACTORS[r]) for r in res)})")
+                         f"thresholds and errors in FULL-resolution px (errors x{factors})")
         else:
             parts.append(f"GT at {letters} resolution: thresholds and errors in {letters} px "
                          f"(native units: UNOFFICIAL, flatters vs full-resolution scoring)")

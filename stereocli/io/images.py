@@ -221,7 +221,7 @@ def grey_uint8(image: np.ndarray) -> np.ndarray:
         # The same weights in OpenCV's fixed point, on the 8-bit values (no float copy).
         return cv2.cvtColor(np.ascontiguousarray(img[..., :3]), cv2.COLOR_RGB2GRAY)
     if img.ndim == 3:
-        img = img[..., :3].astype(np.float32) @ np.float32([0.299, 0.587, 0.114])
+        img = img[..., :3].astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32)
     if img.dtype == np.uint16:
         img = img / 257.0
     return np.ascontiguousarray(np.clip(np.rint(img), 0, 255).astype(np.uint8))

@@ -33,7 +33,7 @@ import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
@@ -53,7 +53,8 @@ _CONFIG_CACHE: dict[str, Any] = {}
 AUTO = "auto"
 
 
-def resolve_range(pair: StereoInput, ndisp: int | str | None, min_disp: int | None) -> tuple[int | None, int | None, dict]:
+def resolve_range(pair: StereoInput, ndisp: int | str | None,
+                  min_disp: int | None) -> tuple[int | None, int | None, dict]:
     """Disparity range for a pair: ``--ndisp N`` first, else its ``calib.txt``, else estimated.
 
     Returns ``(min_disp, ndisp, info)``; both are None when the range is to be estimated from the
@@ -71,7 +72,8 @@ def resolve_range(pair: StereoInput, ndisp: int | str | None, min_disp: int | No
             info["range_source"] = "calib.txt"
             if min_disp is not None:
                 return int(min_disp), int(calib.ndisp), info
-            return (*calib_range(calib, pair.calib), info)
+            # ndisp > 0: calib.txt gives a range
+            return (*cast("tuple[int, int]", calib_range(calib, pair.calib)), info)
         if ndisp is None and min_disp is None:
             info["note"] = f"{pair.calib}: ndisp={calib.ndisp} gives no range; the range is estimated from the images"
     if ndisp is None or ndisp == AUTO:
@@ -238,9 +240,11 @@ def memory_plan(item: WorkItem, config) -> MemoryPlan | None:
     from ..io.images import read_image_header
     from ..matching.pipeline import GIB, RUNTIME_BASE, image_memory, plan_strips, planned_peak
 
-    views = [read_image_header(item.inputs[side]) for side in ("left", "right")]
-    if None in views or views[0].width * views[0].height != views[1].width * views[1].height:
+    left_view, right_view = (read_image_header(item.inputs[side]) for side in ("left", "right"))
+    if (left_view is None or right_view is None
+            or left_view.width * left_view.height != right_view.width * right_view.height):
         return None  # sizes that differ are reported once the views are decoded
+    views = [left_view, right_view]
     width, height = views[0].width, views[0].height
     plane = 4.0 * width * height  # one (H, W) float32 map
     masks = sum(1 for key in ("left_valid", "right_valid") if key in item.inputs)
@@ -262,7 +266,7 @@ def memory_plan(item: WorkItem, config) -> MemoryPlan | None:
     survey = held + plane * SURVEY_COPIES[any(colour)] + results * after_match
     writing = held + results + plane * max(WRITE_COPIES.get(key, 0.0) for key in outputs)
     outside = RUNTIME_BASE + max(decoding, survey, writing)
-    images = image_memory(config, height, width, input_bytes=held, colour=tuple(colour), masks=bool(masks),
+    images = image_memory(config, height, width, input_bytes=held, colour=(colour[0], colour[1]), masks=bool(masks),
                           want_right="right" in outputs, want_confidence="confidence" in outputs,
                           keep_invalid=opts.get("keep_invalid", False))
     least = max(outside, min(planned_peak(config, height, width, 1, plan, images)
@@ -300,7 +304,8 @@ def match_item(item: WorkItem) -> dict:
     left, right = _read_views(item)
     if left.shape[:2] != right.shape[:2]:
         raise DataError(
-            f"{item.name}: left {left.shape[1]}x{left.shape[0]} and right {right.shape[1]}x{right.shape[0]} differ in size"
+            f"{item.name}: left {left.shape[1]}x{left.shape[0]} and right {right.shape[1]}x{right.shape[0]} "
+            "differ in size"
         )
     if left.ndim != right.ndim:
         # One colour and one grey view: match in grey.
@@ -317,8 +322,9 @@ def match_item(item: WorkItem) -> dict:
     seconds = result.seconds
     min_disp, ndisp = result.range.min_disp, result.range.ndisp
     # The plan knows where a given range came from (--ndisp or calib.txt).
-    survey = {"range": dict(result.range.as_dict(), source=opts["range_source"]), "alignment": result.alignment,
-              "warnings": result.warnings, "survey_seconds": result.survey_seconds}
+    survey: dict[str, Any] = {"range": dict(result.range.as_dict(), source=opts["range_source"]),
+                              "alignment": result.alignment, "warnings": result.warnings,
+                              "survey_seconds": result.survey_seconds}
 
     out = item.outputs
     write_pfm(out["disparity"], result.disparity)
@@ -332,8 +338,12 @@ def match_item(item: WorkItem) -> dict:
 
         write_image(out["viz"], disparity_preview(result.disparity, opts.get("vmin"), opts.get("vmax")))
     if "confidence" in out:
+        if result.confidence is None:  # (never: match refuses a pipeline that makes no confidence map)
+            raise RuntimeError(f"{item.name}: the match made no confidence map")
         write_pfm(out["confidence"], result.confidence)
     if "right" in out:
+        if result.disparity_right is None:  # (never: asked for, the right-view map is always made)
+            raise RuntimeError(f"{item.name}: the match made no right-view map")
         write_pfm(out["right"], result.disparity_right)
     notes = [orientation_note(item.inputs["left"]), orientation_note(item.inputs["right"]), opts.get("range_note")]
     survey["warnings"] = [n for n in notes if n] + survey["warnings"]

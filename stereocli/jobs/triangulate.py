@@ -50,7 +50,9 @@ def _searched_range(folder: Path) -> dict | None:
     """``{"min_disp", "ndisp", "source"}``: the range ``stereocli match`` searched, from its
     ``params.json`` in ``folder``; None without one."""
     recorded = _match_record(folder)
-    span = recorded.get("range") if isinstance(recorded.get("range"), dict) else recorded
+    span = recorded.get("range")
+    if not isinstance(span, dict):
+        span = recorded
     low, ndisp = span.get("min_disp"), span.get("ndisp")
     if isinstance(low, int) and isinstance(ndisp, int) and not isinstance(low, bool) and ndisp > 0:
         return {"min_disp": low, "ndisp": ndisp, "source": str(folder / "params.json")}
@@ -118,7 +120,7 @@ def plan_items(inputs: list[str] | tuple[str, ...], output: str, *, calib: str |
     scene_pairs = _scene_pairs(scenes) if scenes else {}
     items = []
     for name, disp in found:
-        def beside(fname: str) -> str | None:
+        def beside(fname: str, disp: Path = disp, name: str = name) -> str | None:
             for folder in [disp.parent] + ([Path(scenes) / name] if scenes else []):
                 if (folder / fname).is_file():
                     return str(folder / fname)
@@ -209,8 +211,8 @@ def triangulate_item(item: WorkItem) -> dict:
     geom = result.geometry
     out = item.outputs
     comments = [f"stereocli triangulate: units {geom.units}; frame {FRAME}",
-                f"Z = f*B/(d + doffs), f {geom.f:.6g} px, B {geom.baseline:.6g} {geom.units}, doffs {geom.doffs:.6g} px, "
-                f"cx {geom.cx:.6g}, cy {geom.cy:.6g}"]
+                f"Z = f*B/(d + doffs), f {geom.f:.6g} px, B {geom.baseline:.6g} {geom.units}, "
+                f"doffs {geom.doffs:.6g} px, cx {geom.cx:.6g}, cy {geom.cy:.6g}"]
     if out["cloud"].lower().endswith(".npy"):
         with atomic_path(out["cloud"]) as tmp, open(tmp, "wb") as fh:
             np.save(fh, result.points)

@@ -27,9 +27,12 @@ from . import stages as _stages  # noqa: F401  (registers every built-in stage)
 class RuntimeParams:
     """Resources and numerics of a run (not stages)."""
 
-    memory_gb: float = param(8.0, "peak memory budget for one pair; larger jobs run in row strips or are refused", unit="GiB", low=0.1, high=1024)
-    strip_rows: int = param(0, "rows per strip (0 = whole image when it fits the budget, else automatic)", unit="rows", low=0, high=100000)
-    strip_overlap: int = param(48, "extra rows above and below each strip so paths and windows see context", unit="rows", low=0, high=4096)
+    memory_gb: float = param(8.0, "peak memory budget for one pair; larger jobs run in row strips or are refused",
+                             unit="GiB", low=0.1, high=1024)
+    strip_rows: int = param(0, "rows per strip (0 = whole image when it fits the budget, else automatic)",
+                            unit="rows", low=0, high=100000)
+    strip_overlap: int = param(48, "extra rows above and below each strip so paths and windows see context",
+                               unit="rows", low=0, high=4096)
     threads: int = param(0, "compiled-kernel threads (0 = all cores); output does not depend on it", low=0, high=1024)
 
 

@@ -28,9 +28,10 @@ volume path, so the plan does not depend on it).
 
 Integer winners: the volume refinements (``subpixel``) run before every map stage, so a map
 stage sees sub-pixel maps. A stage that wants the optimizer's integer maps instead says so
-with its ``keeps_integer`` trait (``lr_check`` with ``compare: integer``); the pipeline then copies ``disparity``/``disparity_right`` into
-``integer_disparity``/``integer_disparity_right`` right after the optimizer, before the
-volume refinements, and stitches them with the maps (two extra (H, W) float32 maps).
+with its ``keeps_integer`` trait (``lr_check`` with ``compare: integer``); the pipeline then
+copies ``disparity``/``disparity_right`` into ``integer_disparity``/``integer_disparity_right``
+right after the optimizer, before the volume refinements, and stitches them with the maps (two
+extra (H, W) float32 maps).
 """
 
 from __future__ import annotations
@@ -48,7 +49,7 @@ from .cost import run_cost_stage
 from .kernels.images import luma
 from .kernels.winners import wta_right
 from .refine import clear_invalid_left
-from .state import MatchState, Wants
+from .state import MatchState, Wants, required
 from .visibility import find_unmatched, keep_in_range
 
 #: Use fused cost + WTA kernels when the pipeline allows it (False forces the volume path).
@@ -255,7 +256,7 @@ class PreparedPair:
     timings: dict[str, float] = field(default_factory=dict)  # preprocess seconds per stage
     #: (left, right, left_valid, right_valid) as given to :func:`prepare`, kept only when a map
     #: refinement ``needs_mirrored`` (the mirrored pair is made from them).
-    inputs: tuple | None = None
+    inputs: tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None] | None = None
     #: The whole-image buffers the strip plan counted (:func:`image_memory`).
     images: ImageMemory = field(default_factory=ImageMemory)
 
@@ -328,7 +329,8 @@ def prepare(
     and ``config`` (never on threads or workers), so every executor stitches the same strips.
     """
     if left.shape != right.shape:
-        raise DataError(f"left is {left.shape[1]}x{left.shape[0]}, right is {right.shape[1]}x{right.shape[0]}: sizes differ")
+        raise DataError(f"left is {left.shape[1]}x{left.shape[0]}, right is {right.shape[1]}x{right.shape[0]}: "
+                        "sizes differ")
     if ndisp < 1:
         raise DataError(f"ndisp must be at least 1 (got {ndisp})")
     shape = left.shape[:2]
@@ -415,7 +417,9 @@ def run_strip(sub: MatchState, config: PipelineConfig, y0: int, y1: int, *,
     whole = keep.start == 0 and keep.stop == sub.shape[0]
     # A copy: a row slice is a view, which would keep the context rows of every strip alive.
     crop = lambda m: None if m is None else (m if whole else m[keep].copy())  # noqa: E731
-    return StripResult(y0, y1, crop(sub.disparity), crop(sub.disparity_right) if sub.wants.right else None,
+    disparity = required(sub.disparity, f"optimizer.{config.optimizer.stage.name}: left no disparity map")
+    return StripResult(y0, y1, disparity if whole else disparity[keep].copy(),
+                       crop(sub.disparity_right) if sub.wants.right else None,
                        crop(sub.confidence), crop(sub.integer_disparity), crop(sub.integer_disparity_right),
                        timings)
 
@@ -452,7 +456,8 @@ def finish(prepared: PreparedPair, results: Iterable[StripResult], config: Pipel
     state.cost = None
     t0 = time.perf_counter()
     # Pixels without a match leave the map before any map stage reads it (visibility.py).
-    disparity = keep_in_range(maps["disparity"], state.min_disp, state.ndisp)
+    # (every strip result holds a disparity map, and a plan has strips)
+    disparity = keep_in_range(required(maps["disparity"], "no strip results"), state.min_disp, state.ndisp)
     unmatched = find_unmatched(shape, state.min_disp, state.ndisp, state.left_valid, state.right_valid)
     disparity = np.where(unmatched.outside_views, np.float32(np.inf), disparity)
     # Pixels invalid at some point from here on, filled or not: their confidence is 0 (a map
@@ -463,7 +468,7 @@ def finish(prepared: PreparedPair, results: Iterable[StripResult], config: Pipel
     state.confidence = maps["confidence"]
     state.integer_disparity, state.integer_disparity_right = maps["integer_disparity"], maps["integer_disparity_right"]
     # Only the state holds the maps now, so a map stage that replaces one frees it.
-    result, maps, disparity = None, None, None
+    del result, maps, disparity
     for call in map_stages:
         if call.stage.traits.needs_mirrored:
             t0 = time.perf_counter()
@@ -555,6 +560,8 @@ def mirrored_disparity(prepared: PreparedPair, config: PipelineConfig, call) -> 
     run sees each occlusion and each census window from the other side, so its errors are
     largely independent of the left map's. A preprocess stage with ``mirrored_params``
     (``row_align``) applies what it found on the pair instead of measuring the mirrored one."""
+    if prepared.inputs is None:  # (never: prepare keeps them when a map refinement needs_mirrored)
+        raise RuntimeError(f"refinement.{call.stage.name}: the pair's inputs were not kept for the mirrored run")
     left, right, left_valid, right_valid = prepared.inputs
     flip = lambda m: None if m is None else m[:, ::-1]  # noqa: E731
     before = config.refinement[:next(i for i, c in enumerate(config.refinement) if c is call)]
@@ -568,7 +575,7 @@ def mirrored_disparity(prepared: PreparedPair, config: PipelineConfig, call) -> 
     runtime = replace(config.runtime, memory_gb=config.runtime.memory_gb - prepared.images.beside / GIB)
     saved = _current_config.get(threading.get_ident())
     try:
-        result = match_pair(flip(right), flip(left),
+        result = match_pair(right[:, ::-1], left[:, ::-1],
                             replace(config, preprocess=preprocess, refinement=before, runtime=runtime),
                             min_disp=prepared.state.min_disp, ndisp=prepared.state.ndisp,
                             left_valid=flip(right_valid), right_valid=flip(left_valid),
@@ -657,7 +664,8 @@ def _strip_state(state: MatchState, a: int, b: int) -> MatchState:
         return MatchState(state.left, state.right, state.min_disp, state.ndisp, state.left_valid,
                           state.right_valid, wants=wants, gray_cache=state.gray_cache)
     crop = lambda m: None if m is None else np.ascontiguousarray(m[a:b])  # noqa: E731
-    return MatchState(crop(state.left), crop(state.right), state.min_disp, state.ndisp,
+    return MatchState(np.ascontiguousarray(state.left[a:b]), np.ascontiguousarray(state.right[a:b]),
+                      state.min_disp, state.ndisp,
                       crop(state.left_valid), crop(state.right_valid), wants=wants, row_offset=a)
 
 
@@ -730,7 +738,9 @@ def _run_volume_stages(sub: MatchState, config: PipelineConfig, volume_stages, t
     timings[key] = timings.get(key, 0.0) + time.perf_counter() - t0
     if sub.wants.right and sub.disparity_right is None:
         t0 = time.perf_counter()
-        sub.disparity_right = wta_right(sub.cost, sub.min_disp, np.float32(sub.cost_max))
+        # (an optimizer that keeps no volume sets the right view itself)
+        volume = required(sub.cost, f"optimizer.{optimizer.stage.name}: left no cost volume for the right view")
+        sub.disparity_right = wta_right(volume, sub.min_disp, np.float32(sub.cost_max))
         timings["optimizer.right_view"] = timings.get("optimizer.right_view", 0.0) + time.perf_counter() - t0
     _keep_integer_maps(sub)
     on_winner = sub.cost is None and sub.winner is not None
@@ -743,7 +753,7 @@ def _run_volume_stages(sub: MatchState, config: PipelineConfig, volume_stages, t
 
 def _keep_integer_maps(sub: MatchState) -> None:
     if sub.wants.integer_maps:  # copies: the volume refinements may edit the maps in place
-        sub.integer_disparity = sub.disparity.copy()
+        sub.integer_disparity = required(sub.disparity, "the optimizer left no disparity map").copy()
         if sub.disparity_right is not None:
             sub.integer_disparity_right = sub.disparity_right.copy()
 

@@ -16,13 +16,30 @@ from .cost import colour_switch, left_guide
 from .kernels import maps as km
 from .kernels import refine as kr
 from .kernels.winners import subpixel_left, subpixel_right
-from .state import MatchState
+from .state import MatchState, WinnerCosts, required
+
+
+def _disparity(state: MatchState, stage: str) -> np.ndarray:
+    """``state.disparity``, which the optimizer sets before any refinement runs."""
+    return required(state.disparity, f"refinement.{stage}: no disparity map (the optimizer sets it)")
+
+
+def _winner(state: MatchState, stage: str) -> WinnerCosts:
+    """``state.winner``, which the pipeline sets before it runs an ``on_winner_costs`` variant."""
+    return required(state.winner, f"refinement.{stage}: no winner costs (a fused cost + WTA pass sets them)")
+
+
+def _cost(state: MatchState, stage: str) -> np.ndarray:
+    """``state.cost``, which a ``needs_cost`` refinement runs beside."""
+    return required(state.cost, f"refinement.{stage}: no cost volume")
 
 
 @dataclass(frozen=True)
 class SubpixelParams:
-    method: str = param("parabola", "curve fitted through the costs at d-1, d, d+1", choices=("parabola", "equiangular"))
-    right: bool = param(True, "also refine the right-view disparity (the --right output and what lr_check then compares with); false keeps its integer winners")
+    method: str = param("parabola", "curve fitted through the costs at d-1, d, d+1",
+                        choices=("parabola", "equiangular"))
+    right: bool = param(True, "also refine the right-view disparity (the --right output and what lr_check then "
+                        "compares with); false keeps its integer winners")
 
 
 def _subpixel_on_winner_costs(state: MatchState, p: SubpixelParams) -> None:
@@ -30,9 +47,10 @@ def _subpixel_on_winner_costs(state: MatchState, p: SubpixelParams) -> None:
     from .optimize.wta import subpixel_on_winner
 
     equi = p.method == "equiangular"
-    state.disparity = subpixel_on_winner(state.winner, state.disparity, state.min_disp, state.ndisp, equi)
-    if p.right and state.disparity_right is not None and state.winner.costs_right is not None:
-        state.disparity_right = subpixel_on_winner(state.winner, state.disparity_right, state.min_disp, state.ndisp,
+    winner = _winner(state, "subpixel")
+    state.disparity = subpixel_on_winner(winner, _disparity(state, "subpixel"), state.min_disp, state.ndisp, equi)
+    if p.right and state.disparity_right is not None and winner.costs_right is not None:
+        state.disparity_right = subpixel_on_winner(winner, state.disparity_right, state.min_disp, state.ndisp,
                                                    equi, right=True)
 
 
@@ -56,15 +74,19 @@ def subpixel(state: MatchState, p: SubpixelParams) -> None:
     neighbouring sums.
     """
     equi = p.method == "equiangular"
-    state.disparity = subpixel_left(state.cost, state.disparity, state.min_disp, equi)
+    cost = _cost(state, "subpixel")
+    state.disparity = subpixel_left(cost, _disparity(state, "subpixel"), state.min_disp, equi)
     if state.disparity_right is not None and p.right:
-        state.disparity_right = subpixel_right(state.cost, state.disparity_right, state.min_disp, equi)
+        state.disparity_right = subpixel_right(cost, state.disparity_right, state.min_disp, equi)
 
 
 @dataclass(frozen=True)
 class LRCheckParams:
-    max_diff: float = param(1.0, "largest accepted |d_left - d_right| at corresponding pixels", unit="px", low=0.0, high=100.0)
-    compare: str = param("final", "which maps are checked: 'final' = the maps as refined so far (after subpixel); 'integer' = the optimizer's integer winners, before any sub-pixel step (Hosni et al. 2013), the rejected pixels being removed from the current map", choices=("final", "integer"))
+    max_diff: float = param(1.0, "largest accepted |d_left - d_right| at corresponding pixels",
+                            unit="px", low=0.0, high=100.0)
+    compare: str = param("final", "which maps are checked: 'final' = the maps as refined so far (after subpixel); "
+                         "'integer' = the optimizer's integer winners, before any sub-pixel step (Hosni et al. 2013), "
+                         "the rejected pixels being removed from the current map", choices=("final", "integer"))
 
 
 def _compares_integer(p: LRCheckParams) -> bool:
@@ -92,9 +114,11 @@ def lr_check(state: MatchState, p: LRCheckParams) -> None:
     """
     left, right = state.integer_disparity, state.integer_disparity_right
     if p.compare == "integer" and left is not None and right is not None:
-        state.disparity = km.lr_check_onto(left, right, float(p.max_diff), state.disparity)
+        state.disparity = km.lr_check_onto(left, right, float(p.max_diff), _disparity(state, "lr_check"))
         return
-    state.disparity = km.lr_check(state.disparity, state.disparity_right, float(p.max_diff))
+    disparity_right = required(state.disparity_right, "refinement.lr_check: no right-view disparity map "
+                                                      "(the pipeline makes it for a stage that needs_right)")
+    state.disparity = km.lr_check(_disparity(state, "lr_check"), disparity_right, float(p.max_diff))
 
 
 @dataclass(frozen=True)
@@ -108,7 +132,7 @@ def median(state: MatchState, p: MedianParams) -> None:
     """Median filter over valid disparities only (holes neither spread nor get filled)."""
     if p.size % 2 == 0:
         raise ConfigError(f"refinement.median.size: {p.size} must be odd")
-    state.disparity = kr.median_valid(state.disparity, p.size // 2)
+    state.disparity = kr.median_valid(_disparity(state, "median"), p.size // 2)
 
 
 @register("refinement", "fill",
@@ -119,17 +143,18 @@ def fill(state: MatchState, params) -> None:
     Makes the output dense (the Middlebury v2 tables score dense maps). ``match --keep-invalid``
     skips this stage.
     """
-    state.disparity = km.fill_background(state.disparity)
+    state.disparity = km.fill_background(_disparity(state, "fill"))
 
 
 @dataclass(frozen=True)
 class UniquenessParams:
-    ratio: float = param(0.05, "reject when a non-adjacent hypothesis costs less than best / (1 - ratio) (OpenCV uniquenessRatio / 100)", low=0.0, high=0.9)
+    ratio: float = param(0.05, "reject when a non-adjacent hypothesis costs less than best / (1 - ratio) "
+                         "(OpenCV uniquenessRatio / 100)", low=0.0, high=0.9)
 
 
 def _uniqueness_on_winner_costs(state: MatchState, p: UniquenessParams) -> None:
     """the best cost beyond ±1 of the winner among the hypotheses searched (windowed SGM)"""
-    w = state.winner
+    w = _winner(state, "uniqueness")
     state.disparity = kr.uniqueness_from_second(w.costs[..., 1], w.second, state.disparity, float(p.ratio))
 
 
@@ -149,8 +174,10 @@ def uniqueness(state: MatchState, p: UniquenessParams) -> None:
 
 @dataclass(frozen=True)
 class ConfidenceParams:
-    lr_scale: float = param(1.0, "left-right disagreement at which the LR factor falls to 1/e", unit="px", low=0.01, high=100.0)
-    margin_scale: float = param(0.1, "cost margin 1 - best/second at which the uniqueness factor reaches 1", low=0.001, high=1.0)
+    lr_scale: float = param(1.0, "left-right disagreement at which the LR factor falls to 1/e",
+                            unit="px", low=0.01, high=100.0)
+    margin_scale: float = param(0.1, "cost margin 1 - best/second at which the uniqueness factor reaches 1",
+                                low=0.001, high=1.0)
 
 
 def _confidence_on_winner_costs(state: MatchState, p: ConfidenceParams) -> None:
@@ -158,7 +185,7 @@ def _confidence_on_winner_costs(state: MatchState, p: ConfidenceParams) -> None:
     (windowed SGM), the LR term as on the volume"""
     if not state.wants.confidence:
         return
-    w = state.winner
+    w = _winner(state, "confidence")
     right = state.disparity_right if state.disparity_right is not None else np.zeros((0, 0), np.float32)
     state.confidence = kr.confidence_from_second(w.costs[..., 1], w.second, state.disparity, right,
                                                  float(p.lr_scale), float(p.margin_scale))
@@ -191,7 +218,8 @@ def confidence(state: MatchState, p: ConfidenceParams) -> None:
 @dataclass(frozen=True)
 class SpeckleParams:
     max_size: int = param(100, "largest connected region (px) removed as a speckle", unit="px", low=0, high=100000)
-    max_diff: float = param(1.0, "neighbours differing by at most this belong to the same region", unit="px", low=0.0, high=100.0)
+    max_diff: float = param(1.0, "neighbours differing by at most this belong to the same region",
+                            unit="px", low=0.0, high=100.0)
 
 
 @register("refinement", "speckle", SpeckleParams, traits=StageTraits(map_copies=6))
@@ -204,7 +232,7 @@ def speckle(state: MatchState, p: SpeckleParams) -> None:
     """
     import cv2
 
-    d = state.disparity
+    d = _disparity(state, "speckle")
     finite = np.isfinite(d)
     marker = np.int16(-32768)
     fixed = np.where(finite, np.round(np.clip(np.where(finite, d, 0), -2047, 2047) * 16), marker).astype(np.int16)
@@ -214,8 +242,10 @@ def speckle(state: MatchState, p: SpeckleParams) -> None:
 
 @dataclass(frozen=True)
 class InterpolateParams:
-    max_dist: int = param(0, "search at most this far for valid neighbours (0 = unlimited)", unit="px", low=0, high=100000)
-    tol: float = param(1.0, "a hole is a mismatch when a right pixel maps back to it within tol", unit="px", low=0.0, high=10.0)
+    max_dist: int = param(0, "search at most this far for valid neighbours (0 = unlimited)",
+                          unit="px", low=0, high=100000)
+    tol: float = param(1.0, "a hole is a mismatch when a right pixel maps back to it within tol",
+                       unit="px", low=0.0, high=10.0)
 
 
 @register("refinement", "interpolate", InterpolateParams,
@@ -230,7 +260,8 @@ def interpolate(state: MatchState, p: InterpolateParams) -> None:
     No bundled preset runs it: in ``quality`` it gained on the tuning scenes (MiddEval3 ArtL)
     but not on the validation scenes, so ``quality`` fills its holes with ``fill``.
     """
-    state.disparity = kr.interpolate_holes(state.disparity, hole_labels(state, p.tol), int(p.max_dist))
+    state.disparity = kr.interpolate_holes(_disparity(state, "interpolate"), hole_labels(state, p.tol),
+                                           int(p.max_dist))
 
 
 def hole_labels(state: MatchState, tol: float) -> np.ndarray:
@@ -246,7 +277,8 @@ def hole_labels(state: MatchState, tol: float) -> np.ndarray:
 class BilateralParams:
     radius: int = param(3, "window half size", unit="px", low=1, high=20)
     sigma_space: float = param(3.0, "spatial Gaussian sigma", unit="px", low=0.1, high=50.0)
-    sigma_color: float = param(10.0, "intensity Gaussian sigma on the left grey image", unit="grey levels", low=0.1, high=255.0)
+    sigma_color: float = param(10.0, "intensity Gaussian sigma on the left grey image",
+                               unit="grey levels", low=0.1, high=255.0)
 
 
 @register("refinement", "bilateral", BilateralParams)
@@ -261,9 +293,12 @@ def bilateral(state: MatchState, p: BilateralParams) -> None:
 class PlaneSmoothParams:
     radius: int = param(10, "half length of the row and column segments fitted", unit="px", low=1, high=50)
     sigma_space: float = param(10.0, "spatial Gaussian sigma along the segment", unit="px", low=0.1, high=100.0)
-    color_range: float = param(20.0, "colour distance (Euclidean, over the channels) beyond which a neighbour gets no weight", unit="grey levels", low=0.1, high=500.0)
-    gate: float = param(1.0, "neighbours whose disparity differs from the centre's by more than this are left out", unit="px", low=0.0, high=100.0)
-    color: bool = param(True, "colour distance on the colour image; false: on the grey image (about a third of the distance work, same scores on MiddEval3)")
+    color_range: float = param(20.0, "colour distance (Euclidean, over the channels) beyond which a neighbour gets no "
+                               "weight", unit="grey levels", low=0.1, high=500.0)
+    gate: float = param(1.0, "neighbours whose disparity differs from the centre's by more than this are left out",
+                        unit="px", low=0.0, high=100.0)
+    color: bool = param(True, "colour distance on the colour image; false: on the grey image (about a third of the "
+                        "distance work, same scores on MiddEval3)")
     step: int = param(1, "fit through every step-th neighbour of the segment (2: half the work)", low=1, high=10)
 
 
@@ -280,7 +315,7 @@ def plane_smooth(state: MatchState, p: PlaneSmoothParams) -> None:
     depth edges (the gate) or colour edges (the colour weight). Needs no cost volume, so it can
     run last, on the dense map. Costs 2·(2·⌊radius / step⌋ + 1) neighbour visits per pixel.
     """
-    state.disparity = kr.plane_smooth(state.disparity, left_guide(state, p.color), int(p.radius),
+    state.disparity = kr.plane_smooth(_disparity(state, "plane_smooth"), left_guide(state, p.color), int(p.radius),
                                       float(p.sigma_space), float(p.color_range), float(p.gate), int(p.step))
 
 

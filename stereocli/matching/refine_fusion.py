@@ -8,7 +8,7 @@ import numpy as np
 
 from ..registry import StageTraits, param, register
 from .kernels import maps as km
-from .state import MatchState
+from .state import MatchState, required
 
 
 @dataclass(frozen=True)
@@ -97,7 +97,8 @@ def mirror_fusion(state: MatchState, p: MirrorFusionParams) -> None:
     """
     if state.mirrored_disparity is None:
         raise RuntimeError("mirror_fusion: the pipeline did not provide the mirrored pair's map")
-    fused = fuse_with_mirrored(state.disparity, state.mirrored_disparity, float(p.tolerance))
+    fused = fuse_with_mirrored(required(state.disparity, "mirror_fusion: no disparity map"), state.mirrored_disparity,
+                               float(p.tolerance))
     if p.reassign_above > 0:
         fused = reassign_contradicted(fused, state.mirrored_disparity, float(p.reassign_above),
                                       int(p.reassign_radius), float(p.reassign_within))

@@ -14,15 +14,16 @@ import numpy as np
 from ..registry import StageTraits, param, register
 from .kernels.refine import single_matching_phase_kernel, single_matching_phase_winner_kernel, weighted_median_at
 from .optimize.wta import check_winner_coverage
-from .state import MatchState
+from .state import MatchState, required
 
 INF = np.float32(np.inf)
 
 
 def _single_matching_phase_on_winner_costs(state: MatchState, params) -> None:
     """the claim costs from the costs kept around each winner (fused cost + WTA)"""
-    win = state.winner
-    state.disparity, missing = single_matching_phase_winner_kernel(state.disparity, win.disparity, win.costs,
+    win = required(state.winner, "refinement.single_matching_phase: no winner costs")
+    disparity = required(state.disparity, "refinement.single_matching_phase: no disparity map")
+    state.disparity, missing = single_matching_phase_winner_kernel(disparity, win.disparity, win.costs,
                                                                    state.min_disp, state.ndisp)
     check_winner_coverage(int(missing), "single_matching_phase")
 
@@ -38,13 +39,17 @@ def single_matching_phase(state: MatchState, params) -> None:
     what a left-right check catches (occlusions, ambiguous matches) without computing the
     right-view disparity. Run it right after WTA, before ``subpixel``.
     """
-    state.disparity = single_matching_phase_kernel(state.disparity, state.cost, state.min_disp)
+    state.disparity = single_matching_phase_kernel(
+        required(state.disparity, "refinement.single_matching_phase: no disparity map"),
+        required(state.cost, "refinement.single_matching_phase: no cost volume"), state.min_disp)
 
 
 @dataclass(frozen=True)
 class TextureParams:
-    window: tuple[int, int] = param((9, 9), "window (height, width) of the local variance, odd", unit="px", low=3, high=101)
-    min_std: float = param(2.0, "invalidate pixels whose local grey-level standard deviation is below this", unit="grey levels", low=0.0, high=128.0)
+    window: tuple[int, int] = param((9, 9), "window (height, width) of the local variance, odd",
+                                    unit="px", low=3, high=101)
+    min_std: float = param(2.0, "invalidate pixels whose local grey-level standard deviation is below this",
+                           unit="grey levels", low=0.0, high=128.0)
 
     def __post_init__(self):
         from .cost import check_odd_window
@@ -75,7 +80,8 @@ def texture(state: MatchState, p: TextureParams) -> None:
 class FillWeightedMedianParams:
     radius: int = param(9, "window radius of the weighted median", unit="px", low=1, high=50)
     sigma_s: float = param(9.0, "spatial scale σ_s", unit="px", low=0.1, high=100.0)
-    sigma_c: float = param(25.5, "colour scale σ_c (0.1 on [0, 1] intensities)", unit="grey levels", low=0.1, high=255.0)
+    sigma_c: float = param(25.5, "colour scale σ_c (0.1 on [0, 1] intensities)",
+                           unit="grey levels", low=0.1, high=255.0)
 
 
 @register("refinement", "fill_weighted_median", FillWeightedMedianParams)
@@ -90,7 +96,8 @@ def fill_weighted_median(state: MatchState, p: FillWeightedMedianParams) -> None
     """
     from .kernels import maps as km
 
-    invalid = ~np.isfinite(state.disparity)
-    filled = km.fill_background(state.disparity)
+    disparity = required(state.disparity, "refinement.fill_weighted_median: no disparity map")
+    invalid = ~np.isfinite(disparity)
+    filled = km.fill_background(disparity)
     guide = np.ascontiguousarray(state.left if state.left.ndim == 3 else state.left[..., None], dtype=np.float32)
     state.disparity = weighted_median_at(filled, invalid, guide, p.radius, float(p.sigma_s), float(p.sigma_c))

@@ -24,15 +24,19 @@ from .state import MatchState
 
 @dataclass(frozen=True)
 class LocalConsistencyParams:
-    radius: int = param(9, "half side of the voting window (half length of the segments with separable)", unit="px", low=1, high=50)
+    radius: int = param(9, "half side of the voting window (half length of the segments with separable)",
+                        unit="px", low=1, high=50)
     gamma_s: float = param(9.0, "γs: spatial falloff of a neighbour's vote", unit="px", low=0.1, high=1000.0)
     gamma_c: float = param(12.0, "γc: colour falloff in the left image", unit="grey levels", low=0.1, high=1000.0)
-    gamma_t: float = param(12.0, "γt: colour falloff between the matched points in the right image", unit="grey levels", low=0.1, high=1000.0)
+    gamma_t: float = param(12.0, "γt: colour falloff between the matched points in the right image",
+                           unit="grey levels", low=0.1, high=1000.0)
     fill_invalid: bool = param(False, "also give invalid (+inf) pixels the winning vote")
     min_spread: float = param(0.0, "vote only at pixels whose window spans more than this many px of "
-                              "disparity (max − min over valid pixels); 0 = every pixel", unit="px", low=0.0, high=1000.0)
+                              "disparity (max − min over valid pixels); 0 = every pixel",
+                              unit="px", low=0.0, high=1000.0)
     band: int = param(0, "half side of the window min_spread is measured in; with separable and min_change, how "
-                      "far along the line a step must be for a pixel to be voted on (0 = radius)", unit="px", low=0, high=50)
+                      "far along the line a step must be for a pixel to be voted on (0 = radius)",
+                      unit="px", low=0, high=50)
     min_change: int = param(0, "take the winning 1-px bin only when it is at least this many bins from the "
                             "pixel's own (0 = always take the winning bin's mean; 2 keeps sub-pixel values "
                             "and moves only misplaced edges)", low=0, high=1000)
@@ -78,14 +82,15 @@ def local_consistency(state: MatchState, p: LocalConsistencyParams) -> None:
         # An empty todo stands for every pixel (no min_spread window to measure).
         todo = (_discontinuity_windows(disp, p.band or p.radius, p.min_spread, False) if p.min_spread > 0
                 else np.zeros((0, 0), np.bool_))
-        conf = None
+        shares = []
         for vertical in (False, True):
             bins = km.disparity_bins(disp, state.min_disp, state.ndisp)
             centres = np.flatnonzero(klc.line_centre_mask(bins, todo, p.band or p.radius, int(p.min_change), vertical))
             disp, share = klc.local_consistency_line(disp, bins, centres, left_packed, right_packed, state.min_disp,
                                                     state.ndisp, p.radius, *tables, int(p.min_change), vertical,
                                                     bool(p.right))
-            conf = share if conf is None else conf * share
+            shares.append(share)
+        conf = shares[0] * shares[1]
         conf[~np.isfinite(disp)] = 0.0
     else:
         # Without the right-image term every match weight is exp(−Δ/∞) = 1 exactly.
@@ -101,13 +106,20 @@ def local_consistency(state: MatchState, p: LocalConsistencyParams) -> None:
 
 @dataclass(frozen=True)
 class GeodesicVoteParams:
-    gamma_s: float = param(100.0, "distance falloff: each step along the line passes exp(−1/γs) of the support", unit="px", low=0.1, high=1e6)
-    gamma_c: float = param(25.0, "colour falloff between neighbouring pixels (mean channel difference)", unit="grey levels", low=0.1, high=1000.0)
-    band: int = param(3, "vote only at pixels within this distance (along the line) of a step of at least min_change bins", unit="px", low=1, high=50)
-    min_change: int = param(2, "take the winning 1-px bin only when it is at least this many bins from the pixel's own (2 keeps sub-pixel values and moves only misplaced edges)", low=1, high=1000)
-    max_bins: int = param(3, "bins each running vote keeps (the strongest; a new bin replaces the weakest)", low=1, high=16)
-    min_lead: float = param(1.0, "move a pixel only when the winning bin's support is at least this many times its own bin's (1: whenever another bin wins)", low=1.0, high=100.0)
-    lines: str = param("both", "the passes: rows, then columns of the result (both), or one of them (two stages, one per pass, can differ in settings)", choices=("both", "rows", "columns"))
+    gamma_s: float = param(100.0, "distance falloff: each step along the line passes exp(−1/γs) of the support",
+                           unit="px", low=0.1, high=1e6)
+    gamma_c: float = param(25.0, "colour falloff between neighbouring pixels (mean channel difference)",
+                           unit="grey levels", low=0.1, high=1000.0)
+    band: int = param(3, "vote only at pixels within this distance (along the line) of a step of at least min_change "
+                      "bins", unit="px", low=1, high=50)
+    min_change: int = param(2, "take the winning 1-px bin only when it is at least this many bins from the pixel's own "
+                            "(2 keeps sub-pixel values and moves only misplaced edges)", low=1, high=1000)
+    max_bins: int = param(3, "bins each running vote keeps (the strongest; a new bin replaces the weakest)",
+                          low=1, high=16)
+    min_lead: float = param(1.0, "move a pixel only when the winning bin's support is at least this many times its own "
+                            "bin's (1: whenever another bin wins)", low=1.0, high=100.0)
+    lines: str = param("both", "the passes: rows, then columns of the result (both), or one of them (two stages, one "
+                       "per pass, can differ in settings)", choices=("both", "rows", "columns"))
     color: bool = param(True, "colour differences on the colour image; false: on the grey image")
 
 
@@ -158,7 +170,7 @@ def _colour_steps(channels: int) -> np.ndarray:
     return np.arange(1020 * channels + 1) * (0.25 / channels)
 
 
-def _vote_tables(channels: int, p: LocalConsistencyParams):
+def _vote_tables(channels: int, p: LocalConsistencyParams) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     """Weights of the separable vote: spatial (2·radius + 1,) by offset, colour and match
     (float32, by summed channel difference in quarter grey levels) and the match weight of a
     point outside the right image."""
@@ -188,19 +200,28 @@ def _discontinuity_windows(disp: np.ndarray, radius: int, min_spread: float, fil
 @dataclass(frozen=True)
 class PlaneFitParams:
     method: str = param("ransac", "plane estimator per segment", choices=("ransac", "histogram"))
-    segmentation: str = param("bilateral", "edge-preserving smoothing before the colour segments are grown: an OpenCV bilateral filter or mean-shift filtering (cv2.pyrMeanShiftFiltering, an iterative filter, slower; same scores on MiddEval3)", choices=("bilateral", "mean_shift"))
-    spatial_radius: int = param(5, "smoothing window radius: mean-shift sp; bilateral: a (2·r − 1)-px filter with σ_space = r", unit="px", low=1, high=100)
-    colour_radius: float = param(6.0, "colour window radius: mean-shift sr; bilateral: σ_colour = 2·r", unit="grey levels", low=1.0, high=255.0)
-    tolerance: float = param(2.0, "neighbours whose filtered colours differ by at most this join a segment", unit="grey levels", low=0.0, high=255.0)
+    segmentation: str = param("bilateral", "edge-preserving smoothing before the colour segments are grown: an OpenCV "
+                              "bilateral filter or mean-shift filtering (cv2.pyrMeanShiftFiltering, an iterative "
+                              "filter, slower; same scores on MiddEval3)", choices=("bilateral", "mean_shift"))
+    spatial_radius: int = param(5, "smoothing window radius: mean-shift sp; bilateral: a (2·r − 1)-px filter with "
+                                "σ_space = r", unit="px", low=1, high=100)
+    colour_radius: float = param(6.0, "colour window radius: mean-shift sr; bilateral: σ_colour = 2·r",
+                                 unit="grey levels", low=1.0, high=255.0)
+    tolerance: float = param(2.0, "neighbours whose filtered colours differ by at most this join a segment",
+                             unit="grey levels", low=0.0, high=255.0)
     min_size: int = param(30, "smaller segments are merged into a neighbour", unit="px", low=1, high=100000)
     min_points: int = param(20, "fit a plane only with at least this many reliable pixels", low=3, high=1000000)
     min_reliable: float = param(0.25, "...and at least this share of the segment reliable", low=0.0, high=1.0)
     min_inliers: float = param(0.8, "use a plane only if this share of its reliable pixels fit it", low=0.0, high=1.0)
-    inlier: float = param(1.0, "a reliable pixel within this distance of the plane is an inlier", unit="px", low=0.01, high=100.0)
-    outlier: float = param(3.0, "with replace: outliers, replace pixels farther than this from their segment's plane", unit="px", low=0.01, high=1000.0)
-    replace: str = param("invalid", "which pixels of a segment with a trusted plane take the plane: invalid ones (occlusions, LR failures), also outliers, or all", choices=("invalid", "outliers", "all"))
+    inlier: float = param(1.0, "a reliable pixel within this distance of the plane is an inlier",
+                          unit="px", low=0.01, high=100.0)
+    outlier: float = param(3.0, "with replace: outliers, replace pixels farther than this from their segment's plane",
+                           unit="px", low=0.01, high=1000.0)
+    replace: str = param("invalid", "which pixels of a segment with a trusted plane take the plane: invalid ones "
+                         "(occlusions, LR failures), also outliers, or all", choices=("invalid", "outliers", "all"))
     iterations: int = param(200, "RANSAC samples per segment", low=1, high=100000)
-    slope_bin: float = param(0.05, "histogram method: width of the slope voting bin", unit="px/px", low=0.001, high=10.0)
+    slope_bin: float = param(0.05, "histogram method: width of the slope voting bin",
+                             unit="px/px", low=0.001, high=10.0)
     seed: int = param(0, "RNG seed of the RANSAC sampling (results are reproducible)", low=0, high=2**31 - 1)
 
 
@@ -265,7 +286,8 @@ def plane_fit(state: MatchState, p: PlaneFitParams) -> None:
     disp = np.ascontiguousarray(state.disparity, dtype=np.float32)
     labels = segment_image(state.left, p.spatial_radius, p.colour_radius, p.tolerance, p.min_size, p.segmentation)
     planes, support, inliers, counts = fit_segment_planes(disp, labels, p)
-    use = (support >= np.maximum(p.min_points, p.min_reliable * counts)) & (inliers >= p.min_inliers * np.maximum(support, 1)) & (inliers > 0)
+    use = ((support >= np.maximum(p.min_points, p.min_reliable * counts))
+           & (inliers >= p.min_inliers * np.maximum(support, 1)) & (inliers > 0))
     lo, hi = float(state.min_disp), float(state.min_disp + state.ndisp - 1)
     outlier = float(p.outlier) if p.replace != "invalid" else np.inf
     state.disparity = ksp.replace_by_planes(disp, labels, planes, use, outlier, p.replace == "all", lo, hi)

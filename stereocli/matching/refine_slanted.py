@@ -21,20 +21,30 @@ from .state import MatchState
 class SlantedPatchMatchParams:
     radius: int = param(10, "half side of the slanted matching window", unit="px", low=1, high=50)
     stride: int = param(2, "use every stride-th row and column of the window", low=1, high=10)
-    census: tuple[int, int] = param((5, 7), "census window (height, width), odd, at most 63 pixels", unit="px", low=1, high=15)
+    census: tuple[int, int] = param((5, 7), "census window (height, width), odd, at most 63 pixels",
+                                    unit="px", low=1, high=15)
     upsample: int = param(8, "right image sampled at 1/upsample px (cubic interpolation along rows)", low=1, high=32)
-    gamma_c: float = param(10.0, "window weight exp(−Δgrey/γc) against the centre pixel", unit="grey levels", low=0.1, high=1000.0)
+    gamma_c: float = param(10.0, "window weight exp(−Δgrey/γc) against the centre pixel",
+                           unit="grey levels", low=0.1, high=1000.0)
     tau: float = param(20.0, "truncation of a window pixel's census Hamming cost", low=1.0, high=64.0)
-    prior: float = param(4.0, "weight of the input map: each window pixel adds prior·min(|d − input|, prior_cap)", low=0.0, high=1000.0)
+    prior: float = param(4.0, "weight of the input map: each window pixel adds prior·min(|d − input|, prior_cap)",
+                         low=0.0, high=1000.0)
     prior_cap: float = param(1.0, "truncation of the input-map term", unit="px", low=0.0, high=1000.0)
-    band: float = param(0.5, "a pixel's disparity stays within this distance of its input value", unit="px", low=0.0, high=1000.0)
-    same_plane: float = param(0.0, "a neighbour's plane is not tried where it stays within this distance of the pixel's own across the whole window (its cost could hardly differ); 0: only identical planes are skipped", unit="px", low=0.0, high=100.0)
-    iterations: int = param(2, "PatchMatch iterations (each: propagation + random search, red then black pixels)", low=0, high=20)
+    band: float = param(0.5, "a pixel's disparity stays within this distance of its input value",
+                        unit="px", low=0.0, high=1000.0)
+    same_plane: float = param(0.0, "a neighbour's plane is not tried where it stays within this distance of the "
+                              "pixel's own across the whole window (its cost could hardly differ); 0: only identical "
+                              "planes are skipped", unit="px", low=0.0, high=100.0)
+    iterations: int = param(2, "PatchMatch iterations (each: propagation + random search, red then black pixels)",
+                            low=0, high=20)
     samples: int = param(1, "random plane perturbations tried per pixel and iteration", low=0, high=16)
-    shift: float = param(0.5, "range of the random disparity perturbation (halved every iteration)", unit="px", low=0.0, high=100.0)
-    slope: float = param(0.1, "range of the random slope perturbation (halved every iteration)", unit="px/px", low=0.0, high=10.0)
+    shift: float = param(0.5, "range of the random disparity perturbation (halved every iteration)",
+                         unit="px", low=0.0, high=100.0)
+    slope: float = param(0.1, "range of the random slope perturbation (halved every iteration)",
+                         unit="px/px", low=0.0, high=10.0)
     fit_radius: int = param(5, "half side of the window of the initial plane fit", unit="px", low=1, high=50)
-    fit_gate: float = param(1.0, "neighbours within this many px of a pixel's disparity enter its plane fit", unit="px", low=0.01, high=1000.0)
+    fit_gate: float = param(1.0, "neighbours within this many px of a pixel's disparity enter its plane fit",
+                            unit="px", low=0.01, high=1000.0)
     seed: int = param(0, "seed of the random perturbations (results are reproducible)", low=0, high=2**31 - 1)
 
     def __post_init__(self):

@@ -27,19 +27,24 @@ from .state import MatchState
 
 @dataclass(frozen=True)
 class RegionVotingParams:
-    tau1: float = param(20.0, "τ1: an arm stops where the colour differs by ≥ τ1 from the pixel or from the previous arm pixel", unit="grey levels", low=1.0, high=255.0)
-    tau2: float = param(6.0, "τ2: beyond L2 the colour must stay within τ2 of the pixel", unit="grey levels", low=0.0, high=255.0)
+    tau1: float = param(20.0, "τ1: an arm stops where the colour differs by ≥ τ1 from the pixel or from the previous "
+                        "arm pixel", unit="grey levels", low=1.0, high=255.0)
+    tau2: float = param(6.0, "τ2: beyond L2 the colour must stay within τ2 of the pixel",
+                        unit="grey levels", low=0.0, high=255.0)
     max_arm: int = param(34, "L1: longest arm", unit="px", low=1, high=200)
     max_arm2: int = param(17, "L2: arms longer than this need the stricter τ2", unit="px", low=1, high=200)
     min_votes: int = param(20, "τS: least number of reliable pixels in the support region", low=1, high=100000)
     min_share: float = param(0.4, "τH: least share of the votes in the winning 1-px bin", low=0.0, high=1.0)
     iterations: int = param(5, "voting passes (outliers filled in one pass vote in the next)", low=1, high=50)
-    color: bool = param(True, "build the support arms on the colour image (max difference over channels, as Mei et al.); false: on the grey image (one channel to compare instead of three)")
-    stride: int = param(1, "sample the support every stride-th row and pixel (about stride² fewer votes; min_votes stays a full-region count)", low=1, high=8)
+    color: bool = param(True, "build the support arms on the colour image (max difference over channels, "
+                        "as Mei et al.); false: on the grey image (one channel to compare instead of three)")
+    stride: int = param(1, "sample the support every stride-th row and pixel (about stride² fewer votes; min_votes "
+                        "stays a full-region count)", low=1, high=8)
 
     def __post_init__(self):
         if self.max_arm2 > self.max_arm:
-            raise ConfigError(f"refinement.region_voting: max_arm2 ({self.max_arm2}) must not exceed max_arm ({self.max_arm})")
+            raise ConfigError(f"refinement.region_voting: max_arm2 ({self.max_arm2}) must not exceed "
+                              f"max_arm ({self.max_arm})")
 
 
 @register("refinement", "region_voting", RegionVotingParams, traits=StageTraits(fills_holes=True, map_copies=9))
@@ -60,7 +65,8 @@ def region_voting(state: MatchState, p: RegionVotingParams) -> None:
                                        int(p.max_arm2))
     disp = np.ascontiguousarray(state.disparity, dtype=np.float32)
     for i in range(p.iterations):
-        new = kv.region_vote(disp, arms, state.min_disp, state.ndisp, int(p.min_votes), float(p.min_share), int(p.stride))
+        new = kv.region_vote(disp, arms, state.min_disp, state.ndisp, int(p.min_votes), float(p.min_share),
+                             int(p.stride))
         done = i == p.iterations - 1 or np.array_equal(np.isfinite(new), np.isfinite(disp))
         disp = new
         if done:

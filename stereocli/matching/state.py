@@ -48,7 +48,7 @@ image.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, TypeVar
 
 import numpy as np
 
@@ -56,6 +56,8 @@ from .kernels.images import luma
 
 if TYPE_CHECKING:
     from .vertical_offset import VerticalOffset
+
+_T = TypeVar("_T")
 
 
 @dataclass
@@ -98,7 +100,8 @@ class MatchState:
     disparity: np.ndarray | None = None  # (H, W) float32 px, +inf invalid
     disparity_right: np.ndarray | None = None  # (H, W) float32 px, right-referenced, +inf invalid
     confidence: np.ndarray | None = None  # (H, W) float32 in [0, 1]
-    integer_disparity: np.ndarray | None = None  # (H, W) float32: ``disparity`` as the optimizer left it (if keep_integer)
+    # (H, W) float32: ``disparity`` as the optimizer left it (if keep_integer)
+    integer_disparity: np.ndarray | None = None
     integer_disparity_right: np.ndarray | None = None  # (H, W) float32: the same for ``disparity_right``
     mirrored_disparity: np.ndarray | None = None  # (H, W) float32 px, right-referenced: for a ``needs_mirrored`` stage
     wants: Wants = field(default_factory=Wants)  # what later stages and outputs need
@@ -127,3 +130,12 @@ class MatchState:
         grey = luma(np.ascontiguousarray(img, dtype=np.float32))
         cache[which] = (img, grey)
         return grey
+
+
+def required(value: _T | None, error: str) -> _T:
+    """``value``, a part of the state that the stage contract sets before the calling stage runs
+    (e.g. ``disparity`` for a refinement); raises ``RuntimeError(error)`` when it is None, which
+    only a stage called out of order (outside the pipeline) meets."""
+    if value is None:
+        raise RuntimeError(error)
+    return value

@@ -10,7 +10,7 @@ import os
 import sys
 import threading
 from contextlib import contextmanager
-from typing import TYPE_CHECKING, Iterator
+from typing import TYPE_CHECKING, Any, Iterator
 
 from .compiling import (
     LazyKernel,
@@ -156,7 +156,7 @@ def _run(kernel, calls: list[tuple]) -> None:
     n = len(calls)
     taken = itertools.count()
     lock = threading.Lock()
-    progress = {"done": 0, "error": None}
+    progress: dict[str, Any] = {"done": 0, "error": None}  # calls done (int), the first error raised
     finished = threading.Event()
 
     def work() -> None:

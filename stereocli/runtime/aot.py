@@ -36,6 +36,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal, cast
 
 import numpy as np
 
@@ -271,7 +272,8 @@ def missing_build_advice() -> str:
         return ""
     checkout = (PACKAGE_DIR.parent / "pyproject.toml").is_file()
     fix = ("python -m stereocli.runtime.aot" if checkout else
-           "pip install --force-reinstall --no-deps <stereocli source> with a C compiler and a numba that has numba.pycc")
+           "pip install --force-reinstall --no-deps <stereocli source> with a C compiler "
+           "and a numba that has numba.pycc")
     return (f"the kernels were not compiled ahead of time ({_BUILD.why_not}); numba compiles them now, once "
             f"(later runs load them from its cache); to build them: {fix}")
 
@@ -312,6 +314,8 @@ def _extension_path(folder: Path, name: str) -> Path | None:
 def _import_extension(path: Path):
     """The extension module in ``path``; raises if it does not load."""
     spec = importlib.util.spec_from_file_location(path.name.split(".")[0], path)
+    if spec is None or spec.loader is None:  # (never: the path ends in an extension suffix)
+        raise ImportError(f"{path}: not an extension module")
     extension = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(extension)
     return extension
@@ -392,7 +396,8 @@ def _build_module(job: tuple[str, str, dict[str, list[tuple[str, ...]]], str]) -
             self.noalias = noalias
             self.auto_parallel = ParallelOptions(prange_only())
 
-    pycc_compiler.Flags = ChunkKernelFlags
+    # pycc reads its Flags class from its module: replaced, not subclassed at the call site.
+    pycc_compiler.Flags = ChunkKernelFlags  # type: ignore[misc]
 
     class SharedRuntimeCC(CC):
         """Compiles ``modulemixin.c`` (the module's own entry point) for each module, and the
@@ -428,7 +433,8 @@ def numba_type(name: str):
     scalar = {"bool": types.boolean}
     if name.startswith("array("):
         dtype, ndim, layout = (part.strip() for part in name[len("array("):-1].split(","))
-        return types.Array(numba_type(dtype), int(ndim.rstrip("d")), layout)
+        # type_name writes C, F or A
+        return types.Array(numba_type(dtype), int(ndim.rstrip("d")), cast(Literal["C", "F", "A"], layout))
     return scalar.get(name) or getattr(types, name)
 
 

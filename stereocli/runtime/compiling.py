@@ -14,6 +14,7 @@ import sys
 import threading
 import warnings
 from dataclasses import dataclass, field
+from typing import Any
 
 # The expected note of numba's parallel pipeline on a :func:`chunk_kernel` (it has no prange).
 warnings.filterwarnings("ignore", message="(?s).*no transformation for parallel execution was possible")
@@ -26,7 +27,8 @@ def prange_only() -> dict:
 
     With ``parallel=True`` numba also turns every array allocation or expression in the kernel
     (``np.full``, ``np.zeros``, copies, sums) into a parallel loop of its own: each one is
-    compiled separately (in the first run) and launched on the threads for a few elements' work. (A fresh dict per call: numba consumes it.)
+    compiled separately (in the first run) and launched on the threads for a few elements' work.
+    (A fresh dict per call: numba consumes it.)
     """
     return {"comprehension": False, "reduction": False, "inplace_binop": False, "setitem": False, "numpy": False,
             "stencil": False, "fusion": False, "prange": True}
@@ -91,9 +93,10 @@ class LazyIntrinsic:
     """``numba.extending.intrinsic(func)``, made when numba starts (see :class:`LazyKernel`)."""
 
     def __init__(self, func) -> None:
-        functools.update_wrapper(self, func)
+        # update_wrapper copies __name__, __doc__... onto any object; typeshed asks for a callable.
+        functools.update_wrapper(self, func)  # type: ignore[arg-type]
         self.py_func = func
-        self._made = None
+        self._made: Any = None  # numba's intrinsic, once made
 
     def _make(self, numba) -> None:
         from numba.extending import intrinsic as numba_intrinsic
@@ -166,8 +169,10 @@ def set_numba_threads(threads: int, numba_threads: int | None = None) -> None:
     if _NUMBA.started:
         import numba
 
-        count = numba_threads or threads or numba.config.NUMBA_NUM_THREADS
-        numba.set_num_threads(min(count, numba.config.NUMBA_NUM_THREADS))
+        # numba.config sets its options at import time (from the environment): its stubs miss them.
+        default = numba.config.NUMBA_NUM_THREADS  # type: ignore[attr-defined]
+        count = numba_threads or threads or default
+        numba.set_num_threads(min(count, default))
 
 
 def get_numba_threads() -> int | None:

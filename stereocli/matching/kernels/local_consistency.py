@@ -303,9 +303,10 @@ def local_consistency_line(disp, bins, centres, left_packed, right_packed, min_d
     """Mattoccia's locally consistent vote along one line per pixel: the row segment
     ``|x' − x| ≤ radius`` (or, ``vertical``, the column segment) instead of the square window.
 
-    ``bins`` (H, W) int32 from :func:`~stereocli.matching.kernels.maps.disparity_bins`; ``centres`` (N,) int64 ascending flat
-    indices ``y·W + x`` of :func:`line_centre_mask`'s pixels; ``left_packed``/``right_packed`` (H, W) int64 from
-    :func:`packed_quarter_levels`. Every valid g on the segment of f votes for its bin with
+    ``bins`` (H, W) int32 from :func:`~stereocli.matching.kernels.maps.disparity_bins`; ``centres``
+    (N,) int64 ascending flat indices ``y·W + x`` of :func:`line_centre_mask`'s pixels;
+    ``left_packed``/``right_packed`` (H, W) int64 from :func:`packed_quarter_levels`. Every valid
+    g on the segment of f votes for its bin with
     ``spatial[t + radius] · colour_w[ΔL(f, g)] · match_w[ΔR(f − d_g, g − d_g)]`` (t = g − f;
     ``outside_w`` when either right point is outside the image; no right-image factor when
     ``use_right`` is false): the plausibilities of :func:`local_consistency`, tabulated over

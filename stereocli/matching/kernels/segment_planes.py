@@ -242,7 +242,8 @@ def _fit_planes_chunk(disp, labels, order, starts, method: int, iterations: int,
         best_cnt = -1
         if method == 0:
             rng = np.empty(1, np.uint64)
-            rng[0] = np.uint64(seed) * np.uint64(6364136223846793005) + np.uint64(s) * np.uint64(1442695040888963407) + np.uint64(1)
+            rng[0] = (np.uint64(seed) * np.uint64(6364136223846793005)
+                      + np.uint64(s) * np.uint64(1442695040888963407) + np.uint64(1))
             m = np.empty((3, 3))
             v = np.empty(3)
             for _ in range(iterations):

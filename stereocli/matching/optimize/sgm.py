@@ -34,7 +34,7 @@ from ..kernels import sgm as ks
 from ..kernels import sgm_window as kw
 from ..kernels.images import half_resolution
 from ..kernels.maps import lr_check
-from ..state import MatchState, Wants, WinnerCosts
+from ..state import MatchState, Wants, WinnerCosts, required
 
 #: Largest value of the aggregated volume (``state.cost_max`` after SGM); sums stay below it.
 S_MAX = 65535
@@ -47,20 +47,34 @@ CoarseLevel = Callable[[MatchState, "SGMParams", object], np.ndarray]
 
 @dataclass(frozen=True)
 class SGMParams:
-    paths: int = param(8, "number of path directions: 2 = scanlines only (fast, streaky), 4, 8, 16", choices=(2, 4, 8, 16))
-    p1: float = param(0.33, "penalty for a 1-px disparity change, as a fraction of the cost's range (cost_max)", unit="× cost_max", low=0.0, high=10.0)
-    p2: float = param(1.75, "penalty for larger disparity jumps, as a fraction of cost_max (clamped to ≥ p1)", unit="× cost_max", low=0.0, high=20.0)
-    p2_gamma: float = param(16.0, "adaptive P2 = max(P1, P2·γ/(γ+|ΔI|)) from the left image gradient along the path; 0 = constant P2", unit="grey levels", low=0.0, high=1000.0)
+    paths: int = param(8, "number of path directions: 2 = scanlines only (fast, streaky), 4, 8, 16",
+                       choices=(2, 4, 8, 16))
+    p1: float = param(0.33, "penalty for a 1-px disparity change, as a fraction of the cost's range (cost_max)",
+                      unit="× cost_max", low=0.0, high=10.0)
+    p2: float = param(1.75, "penalty for larger disparity jumps, as a fraction of cost_max (clamped to ≥ p1)",
+                      unit="× cost_max", low=0.0, high=20.0)
+    p2_gamma: float = param(16.0, "adaptive P2 = max(P1, P2·γ/(γ+|ΔI|)) from the left image gradient along the path; "
+                            "0 = constant P2", unit="grey levels", low=0.0, high=1000.0)
     levels: int = param(255, "quantisation levels for the matching costs (255 keeps them in uint8)", low=15, high=4095)
-    coarse: bool = param(False, "coarse-to-fine search: a full-range SGM at half resolution sets each pixel's hypotheses")
-    margin: int = param(3, "coarse-to-fine: hypotheses beyond the coarse neighbourhood's range, each side", unit="px", low=0, high=64)
+    coarse: bool = param(False, "coarse-to-fine search: a full-range SGM at half resolution sets each pixel's "
+                         "hypotheses")
+    margin: int = param(3, "coarse-to-fine: hypotheses beyond the coarse neighbourhood's range, each side",
+                        unit="px", low=0, high=64)
     radius: int = param(3, "coarse-to-fine: neighbourhood radius at the coarse level", unit="coarse px", low=0, high=8)
-    max_window: int = param(0, "coarse-to-fine: most hypotheses per pixel (0 = as the neighbourhood needs)", low=0, high=4096)
-    align: int = param(8, "coarse-to-fine: the kernel computes each window within a run of hypotheses on this grid (whole vector loops; same result)", low=1, high=64)
-    coarse_paths: int = param(0, "coarse-to-fine: path directions at the coarse level (0 = paths)", choices=(0, 2, 4, 8, 16))
-    coarse_min_ndisp: int = param(0, "coarse-to-fine only for ranges of more disparities than this (a narrow range leaves the windows little to cut, and the full-range search is then faster)", low=0, high=4096)
-    coarse_min_volume: float = param(0.0, "coarse-to-fine only for cost volumes of more than this many million cells (H·W·D): on a small volume the coarse level costs more than the windows save, and the full-range search is faster", unit="M cells", low=0.0, high=1e6)
-    coarse_levels: int = param(1, "coarse-to-fine: coarser levels below full resolution (each halves the image; only the coarsest searches the full range)", low=1, high=4)
+    max_window: int = param(0, "coarse-to-fine: most hypotheses per pixel (0 = as the neighbourhood needs)",
+                            low=0, high=4096)
+    align: int = param(8, "coarse-to-fine: the kernel computes each window within a run of hypotheses on this grid "
+                       "(whole vector loops; same result)", low=1, high=64)
+    coarse_paths: int = param(0, "coarse-to-fine: path directions at the coarse level (0 = paths)",
+                              choices=(0, 2, 4, 8, 16))
+    coarse_min_ndisp: int = param(0, "coarse-to-fine only for ranges of more disparities than this (a narrow range "
+                                  "leaves the windows little to cut, and the full-range search is then faster)",
+                                  low=0, high=4096)
+    coarse_min_volume: float = param(0.0, "coarse-to-fine only for cost volumes of more than this many million cells "
+                                     "(H·W·D): on a small volume the coarse level costs more than the windows save, "
+                                     "and the full-range search is faster", unit="M cells", low=0.0, high=1e6)
+    coarse_levels: int = param(1, "coarse-to-fine: coarser levels below full resolution (each halves the image; only "
+                               "the coarsest searches the full range)", low=1, high=4)
 
 
 def quantization(cost_max: float, paths: int, p1: float, p2: float, levels: int) -> tuple[float, int, int, int]:
@@ -112,7 +126,9 @@ def coarse_disparity(state: MatchState, p: SGMParams, cost) -> np.ndarray:
         cost = replace(cost, params=coarse_params(cost.params))
     run_sgm(sub, replace(p, paths=p.coarse_paths or p.paths, coarse_levels=p.coarse_levels - 1), cost,
             coarse=p.coarse_levels > 1)
-    return lr_check(sub.disparity, sub.disparity_right, 1.0)
+    # run_sgm sets both maps (the coarse state wants the right view).
+    return lr_check(required(sub.disparity, "optimizer.sgm: the coarse level left no disparity map"),
+                    required(sub.disparity_right, "optimizer.sgm: the coarse level left no right-view map"), 1.0)
 
 
 def search_windows(coarse: np.ndarray, shape: tuple[int, int], min_disp: int, ndisp: int, margin: int,
@@ -147,7 +163,7 @@ def _integer_costs(cost_max: float, dtype, p: SGMParams) -> tuple[int, float, in
 def _quantized(state: MatchState, p: SGMParams) -> tuple[np.ndarray, int, float, int, int]:
     """``state.cost`` as integers for the kernels: ``(cq, mul, scale, p1, p2)``; releases the
     float volume (peak memory, see the module docstring)."""
-    cost = state.cost
+    cost = required(state.cost, "optimizer.sgm: no cost volume")  # (never: both callers run the cost stage first)
     exact = _integer_costs(state.cost_max, cost.dtype, p)
     if exact is not None:
         mul, scale, p1, p2 = exact
