@@ -14,7 +14,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "stereocli"
 #: cli → jobs → api → {matching, rectification, triangulation, evaluation, calib, synth, features} → {io,
 #: registry, config, viz, runinfo, process, runtime} → errors
 LAYERS = {
-    "errors": 0,
+    "errors": 0, "lazy": 0,
     "io": 1, "registry": 1, "config": 1, "viz": 1, "runinfo": 1, "process": 1, "runtime": 1,
     "matching": 2, "rectification": 2, "triangulation": 2, "evaluation": 2, "calib": 2, "synth": 2, "features": 2,
     "api": 3, "apidoc": 3,

@@ -37,14 +37,7 @@ def calibrate_folder(folder: str | os.PathLike, pattern: Pattern, options: Calib
         first = detections[paths[0]]
         raise DataError(f"{folder}: target not found in any of the {len(paths)} images ({first.path}: "
                         f"{first.reason or 'not found'}); check --pattern (COLSxROWS inner corners) and --pattern-type")
-    views, missing, size = build_views(pairs, detections, pattern)
-    if len(views) < 3:
-        raise DataError(f"{folder}: the target was found in both images of only {len(views)} pair(s); need at least 3"
-                        + (f" (e.g. {missing[0]['image']}: {missing[0]['reason']})" if missing else ""))
-    result = calibrate_stereo(views, size, pattern, options or CalibOptions(), missing=missing,
-                              total_pairs=len(pairs))
-    result.report["warnings"] += cache_warnings
-    return result
+    return _calibrate_detected(pairs, detections, pattern, options, cache_warnings, f"{folder}: ")
 
 
 def calibrate_pairs(pairs: list, pattern: Pattern, options: CalibOptions | None = None, *, detector: str = "auto",
@@ -86,11 +79,20 @@ def calibrate_pairs(pairs: list, pattern: Pattern, options: CalibOptions | None 
         corners, ids, reason = detect(image, pattern, detector=detector)
         detections[key] = Detection(path=key, size=(image.shape[1], image.shape[0]), corners=corners, ids=ids,
                                     reason=reason)
-    views, missing, size = build_views(named, detections, pattern)
+    return _calibrate_detected(named, detections, pattern, options, cache_warnings, "")
+
+
+def _calibrate_detected(pairs: list[tuple[str, str, str]], detections: dict, pattern: Pattern,
+                        options: CalibOptions | None, warnings: list[str], label: str) -> CalibrationResult:
+    """Calibrate the named ``pairs`` from their ``detections``, with the detection cache's
+    ``warnings`` added to the report; ``label`` starts the error for too few pairs."""
+    from ..errors import DataError
+
+    views, missing, size = build_views(pairs, detections, pattern)
     if len(views) < 3:
-        raise DataError(f"the target was found in both images of only {len(views)} pair(s); need at least 3"
+        raise DataError(f"{label}the target was found in both images of only {len(views)} pair(s); need at least 3"
                         + (f" (e.g. {missing[0]['image']}: {missing[0]['reason']})" if missing else ""))
     result = calibrate_stereo(views, size, pattern, options or CalibOptions(), missing=missing,
-                              total_pairs=len(named))
-    result.report["warnings"] += cache_warnings
+                              total_pairs=len(pairs))
+    result.report["warnings"] += warnings
     return result

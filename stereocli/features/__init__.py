@@ -5,6 +5,8 @@ The vertical offset of the rows, which the ``row_align`` stage measures and undo
 that stage (:mod:`stereocli.matching.vertical_offset`); it is exported here too.
 """
 
+from ..lazy import lazy_exports
+
 #: Public name -> the module that defines it, relative to this package (imported on first use).
 _EXPORTS = {
     "PointMatches": ".points", "match_points": ".points",
@@ -17,16 +19,4 @@ _EXPORTS = {
 __all__ = sorted(_EXPORTS)
 
 
-def __getattr__(name: str):
-    module = _EXPORTS.get(name)
-    if module is None:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    import importlib
-
-    value = getattr(importlib.import_module(module, __name__), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(__all__))
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS, globals())
