@@ -43,7 +43,7 @@ PRESET_ROWS = {
     "fast": ("census 5×5, coarse-to-fine 4-path SGM, sub-pixel, LR check, fill, 3×3 median, `plane_smooth`",
              "previews; pairs whose rows meet"),
     "default": ("`row_align` (tracking 4× reduced), census 5×5, coarse-to-fine 4-path SGM, sub-pixel, LR check, "
-                "fill, 5×5 median, `plane_smooth`", "almost everything: SGBM's speed, half its errors"),
+                "fill, 5×5 median, `plane_smooth`", "almost everything: near SGBM's speed, half its errors"),
     "accurate": ("`row_align` (2×), census 5×5, SGM with wider windows, sub-pixel, LR check, fill, median, "
                  "geodesic vote, `plane_smooth`", "the best accuracy per second"),
     "quality": ("`accurate` with colour-weighted census + `plane_fit` of LR rejects + `mirror_fusion` + "
