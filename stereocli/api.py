@@ -702,7 +702,9 @@ def _valid_mask(value: np.ndarray | PathLike, shape: tuple[int, ...]) -> np.ndar
     127 valid).
     """
     if isinstance(value, (str, os.PathLike)):
-        mask = read_image(value, gray=True) > 127
+        from .io.images import read_valid_mask
+
+        mask = read_valid_mask(value)
     else:
         mask = np.asarray(value).astype(bool)
     if mask.shape[:2] != shape:

@@ -276,17 +276,11 @@ def parse_set(assignment: str) -> tuple[list[str], str, Any]:
         raise ConfigError(f"--set {excerpt(assignment)}: expected section.key=value; forms: {SET_FORMS}")
     key, raw = assignment.split("=", 1)
     key = key.strip()
-    op = "="
-    if key.endswith(("+", "-")):
-        op, key = key[-1] + "=", key[:-1]
-    parts = [p for p in key.strip().split(".") if p]
-    if not parts or (op == "=" and len(parts) < 2 and parts[0] not in STAGE_SECTIONS):
-        raise ConfigError(f"--set {excerpt(assignment)}: expected section.key=value (e.g. cost.window=[5,5]); "
-                          f"forms: {SET_FORMS}")
+    parts, op = split_key(key, f"--set {excerpt(assignment)}", expected="section.key=value (e.g. cost.window=[5,5])")
     if not raw.strip():
         return parts, op, ""
     try:
-        check_yaml_limits(raw, f"--set {excerpt(key.strip())}")
+        check_yaml_limits(raw, f"--set {excerpt(key if op == '=' else key[:-1])}")
         value = yaml.safe_load(raw)
     except yaml.YAMLError:
         value = raw
@@ -339,16 +333,16 @@ def apply_set(config: dict, assignment: str) -> dict:
     return set_value(config, parts, value, f"--set {excerpt(assignment)}", op=op)
 
 
-def split_key(key: str, where: str) -> tuple[list[str], str]:
+def split_key(key: str, where: str, *, expected: str = "section.key (e.g. cost.window)") -> tuple[list[str], str]:
     """``"section.key"`` (``"section.stage.key"``, ``"refinement+"``: :data:`SET_FORMS` without
-    the value) as its parts and operator; :class:`ConfigError` naming ``where`` when it names
-    no key."""
+    the value) as its parts and operator; :class:`ConfigError` naming ``where`` and what was
+    ``expected`` when it names no key."""
     key, op = str(key).strip(), "="
     if key.endswith(("+", "-")):
         op, key = key[-1] + "=", key[:-1]
     parts = [p for p in key.split(".") if p]
     if not parts or (op == "=" and len(parts) < 2 and parts[0] not in STAGE_SECTIONS):
-        raise ConfigError(f"{where}: expected section.key (e.g. cost.window); forms: {SET_FORMS}")
+        raise ConfigError(f"{where}: expected {expected}; forms: {SET_FORMS}")
     return parts, op
 
 

@@ -15,24 +15,33 @@ SHARED_DATA = REPO.parent / "shared" / "data"
 SAMPLES = REPO / "samples"
 
 
+def installed_builds() -> list[Path]:
+    """The ahead-of-time builds ``pip install .`` put in this interpreter's site-packages that
+    are usable with these sources (their manifest matches: same kernel sources, CPU, Python)."""
+    import sysconfig
+
+    from stereocli.runtime import aot
+
+    folders = sorted({Path(sysconfig.get_paths()[key]) / "stereocli" / "runtime" / "_aot"
+                      for key in ("platlib", "purelib")})
+    return [folder for folder in folders if (manifest := aot.read_manifest(folder))
+            and manifest == aot.expected_manifest(manifest["kernels"])]
+
+
 def _use_the_installed_kernels() -> None:
     """The tests import this checkout's sources. When the checkout holds no ahead-of-time build
     but the installed package holds one of the same sources (``pip install .`` of this checkout,
     as the README's test command does), the tests and the processes they start load those
     kernels instead of compiling them again with numba's JIT (``STEREOCLI_AOT_DIR``)."""
     import os
-    import sysconfig
 
     from stereocli.runtime import aot
 
     if os.environ.get("STEREOCLI_AOT_DIR") or aot.read_manifest(aot.BUILD_DIR) is not None:
         return
-    for key in ("platlib", "purelib"):
-        folder = Path(sysconfig.get_paths()[key]) / "stereocli" / "runtime" / "_aot"
-        manifest = aot.read_manifest(folder)
-        if manifest and manifest == aot.expected_manifest(manifest["kernels"]):
-            os.environ["STEREOCLI_AOT_DIR"] = str(folder)
-            return
+    builds = installed_builds()
+    if builds:
+        os.environ["STEREOCLI_AOT_DIR"] = str(builds[0])
 
 
 _use_the_installed_kernels()

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import REPO
+from conftest import REPO, installed_builds
 from stereocli.matching.config import build_config
 from stereocli.matching.pipeline import match_pair
 from stereocli.matching.warmup import synthetic_pair
@@ -194,11 +194,7 @@ def _complete_build() -> Path | None:
     """A build of every listed kernel for these sources: the installed package's (``pip install
     .``; the tests import the checkout's sources) or the checkout's (``pip install -e .``);
     None if neither."""
-    import sysconfig
-
-    installed = {Path(sysconfig.get_paths()[key]) / "stereocli" / "runtime" / "_aot"
-                 for key in ("platlib", "purelib")}
-    for folder in [*sorted(installed), aot.BUILD_DIR]:
+    for folder in [*installed_builds(), aot.BUILD_DIR]:
         manifest = aot.read_manifest(folder)
         if manifest and manifest == aot.expected_manifest(manifest["kernels"]) \
                 and set(manifest["kernels"]) == set(aot.read_signatures()):

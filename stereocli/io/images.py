@@ -262,6 +262,12 @@ def write_disparity_png16(path: str | os.PathLike, disparity: np.ndarray, scale:
     return lost
 
 
+def read_valid_mask(path: str | os.PathLike) -> np.ndarray:
+    """A valid mask as ``rectify`` writes it (``valid0.png``: 255 valid, 0 not) as (H, W) bool,
+    True above 127."""
+    return read_image(path, gray=True) > 127
+
+
 def read_disparity(path: str | os.PathLike, *, scale: float | None = None, kind: str = "disparity") -> np.ndarray:
     """Read a disparity map as (H, W) float32 pixels with +inf for invalid / unknown.
 

@@ -178,10 +178,9 @@ def _config(config: dict):
 def _load_mask(path: str | None) -> np.ndarray | None:
     if not path:
         return None
-    from ..io.images import read_image
+    from ..io.images import read_valid_mask
 
-    mask = read_image(path, gray=True)
-    return mask > 127
+    return read_valid_mask(path)
 
 
 def check_confidence(config: dict) -> None:
@@ -302,12 +301,7 @@ def match_item(item: WorkItem) -> dict:
     memory = memory_plan(item, config)
     t_load = time.perf_counter()
     left, right = _read_views(item)
-    if left.shape[:2] != right.shape[:2]:
-        raise DataError(
-            f"{item.name}: left {left.shape[1]}x{left.shape[0]} and right {right.shape[1]}x{right.shape[0]} "
-            "differ in size"
-        )
-    if left.ndim != right.ndim:
+    if left.ndim != right.ndim:  # (views of different sizes: stereocli.match refuses them)
         # One colour and one grey view: match in grey.
         left, right = _read_views(item, gray=True)
     left_valid = _load_mask(item.inputs.get("left_valid"))
