@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING, Any, Callable, Mapping, Sequence, Union
 
 import numpy as np
 
-from .errors import ConfigError, DataError
+from .errors import ConfigError, DataError, named
 
 if TYPE_CHECKING:
     from .calib import CalibrationResult, Pattern
@@ -44,10 +44,6 @@ __all__ = ["MatchRange", "MatchResult", "RectifyResult", "TriangulationResult", 
 PathLike = str | os.PathLike
 #: Range sources of :class:`MatchRange`.
 RANGE_SOURCES = ("given", "calib.txt", "estimated")
-
-
-def _named(name: str, message: str) -> str:
-    return f"{name}: {message}" if name else message
 
 
 # --------------------------------------------------------------------------- images
@@ -102,12 +98,12 @@ def _as_image(image: Any, what: str, name: str = "") -> np.ndarray:
     elif array.ndim == 3 and array.shape[2] == 4:
         array = array[..., :3]  # RGBA: the alpha channel is not matched (as read_image drops it)
     if array.ndim not in (2, 3) or (array.ndim == 3 and array.shape[2] != 3) or 0 in array.shape:
-        raise DataError(_named(name, f"{what} image has shape {array.shape}; expected (H, W) grey or (H, W, 3) RGB"))
+        raise DataError(named(name, f"{what} image has shape {array.shape}; expected (H, W) grey or (H, W, 3) RGB"))
     if array.dtype not in _IMAGE_DTYPES:
-        raise DataError(_named(name, f"{what} image is {array.dtype}; expected uint8, uint16 or float (0-255)"))
+        raise DataError(named(name, f"{what} image is {array.dtype}; expected uint8, uint16 or float (0-255)"))
     if array.dtype.kind == "f":
         if not np.isfinite(array).all():
-            raise DataError(_named(name, f"{what} image holds NaN or infinite values"))
+            raise DataError(named(name, f"{what} image holds NaN or infinite values"))
         array = array.astype(np.float32, copy=False)
     return np.ascontiguousarray(array)  # (a BGR flip's negative strides: OpenCV wants rows in order)
 
@@ -125,7 +121,7 @@ def _as_mask(mask: Any, what: str, shape: tuple[int, int], name: str) -> np.ndar
     array = np.asarray(mask)
     if array.shape != shape:
         size = f"{array.shape[1]}x{array.shape[0]}" if array.ndim == 2 else f"of shape {array.shape}"
-        raise DataError(_named(name, f"{what} valid mask is {size}, image is {shape[1]}x{shape[0]}"))
+        raise DataError(named(name, f"{what} valid mask is {size}, image is {shape[1]}x{shape[0]}"))
     return np.ascontiguousarray(array if array.dtype == bool else array > 0)
 
 
@@ -253,9 +249,9 @@ def _given_range(ndisp: int | str | None, min_disp: int | None, calib: Any,
         calib = None
     if ndisp is not None:
         if isinstance(ndisp, bool) or not isinstance(ndisp, (int, np.integer)) or ndisp < 1:
-            raise ConfigError(_named(name, f"ndisp must be a whole number >= 1, 'auto' or None, got {ndisp!r}"))
+            raise ConfigError(named(name, f"ndisp must be a whole number >= 1, 'auto' or None, got {ndisp!r}"))
         if min_disp is not None and (isinstance(min_disp, bool) or not isinstance(min_disp, (int, np.integer))):
-            raise ConfigError(_named(name, f"min_disp must be a whole number, got {min_disp!r}"))
+            raise ConfigError(named(name, f"min_disp must be a whole number, got {min_disp!r}"))
         return int(min_disp or 0), int(ndisp), "given"
     if calib is not None:
         from .io.middlebury import MiddleburyCalib, read_calib_txt
@@ -264,7 +260,7 @@ def _given_range(ndisp: int | str | None, min_disp: int | None, calib: Any,
         if mb.ndisp > 0:
             return int(min_disp or 0), int(mb.ndisp), "calib.txt"
     if min_disp is not None:
-        raise ConfigError(_named(name, "min_disp needs ndisp (or a calib.txt with ndisp=); an estimated range "
+        raise ConfigError(named(name, "min_disp needs ndisp (or a calib.txt with ndisp=); an estimated range "
                                        "sets both"))
     return None, None, "estimated"
 
@@ -383,7 +379,7 @@ def match(
 
     left, right = _as_image(left, "left", name), _as_image(right, "right", name)
     if left.shape[:2] != right.shape[:2]:
-        raise DataError(_named(name, f"left {left.shape[1]}x{left.shape[0]} and right {right.shape[1]}x"
+        raise DataError(named(name, f"left {left.shape[1]}x{left.shape[0]} and right {right.shape[1]}x"
                                      f"{right.shape[0]} differ in size"))
     if left.ndim != right.ndim:  # one colour and one grey view: match in grey
         left, right = (_grey(v) if v.ndim == 3 else v for v in (left, right))
@@ -397,7 +393,7 @@ def match(
         hint = confidence_hint(cfg)
         key = hint.removeprefix("--set ").split("=", 1)[0]
         names = ", ".join(c.stage.name for c in cfg.refinement) or "none"
-        raise ConfigError(_named(name, f"confidence: the configured pipeline produces no confidence map (refinement: "
+        raise ConfigError(named(name, f"confidence: the configured pipeline produces no confidence map (refinement: "
                                        f"{names}); add a refinement stage that does, "
                                        f"e.g. set={{{key!r}: 'confidence'}} ({hint} on the command line)"))
     lo, nd, source = _given_range(ndisp, min_disp, calib, name)

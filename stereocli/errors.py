@@ -72,6 +72,11 @@ class Interrupted(KeyboardInterrupt):
 EXCERPT_CHARS = 60
 
 
+def named(name: str, message: str) -> str:
+    """``message`` after ``name: `` (the pair or scene it is about), or alone without a name."""
+    return f"{name}: {message}" if name else message
+
+
 def excerpt(value: object, *, quote: bool = False, limit: int = EXCERPT_CHARS) -> str:
     """How an error message quotes a user's ``value``: a string as it is (``repr`` with ``quote``,
     and any other value always), cut after ``limit`` characters with the length of the whole.

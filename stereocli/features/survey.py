@@ -18,7 +18,7 @@ import time
 
 import numpy as np
 
-from ..errors import DataError
+from ..errors import DataError, named
 
 __all__ = ["RECTIFY_FIRST", "ROWS_NOT_ALIGNED", "check_range_meets_image", "measures_rows", "rows_corrected",
            "rows_from_match", "survey_pair"]
@@ -30,15 +30,11 @@ RECTIFY_FIRST = ("rectify the pair first (stereocli rectify --calib RIG.yml, or 
                  "without a calibration)")
 
 
-def _named(name: str, message: str) -> str:
-    return f"{name}: {message}" if name else message
-
-
 def check_range_meets_image(min_disp: int, ndisp: int, width: int, *, name: str = "") -> None:
     """Raise :class:`DataError` when no disparity of ``[min_disp, min_disp + ndisp)`` puts a left
     pixel's match inside an image ``width`` px wide: every pixel would be invalid."""
     if min_disp >= width or min_disp + ndisp - 1 <= -width:
-        raise DataError(_named(name, f"the disparity range {min_disp}..{min_disp + ndisp - 1} px lies outside the "
+        raise DataError(named(name, f"the disparity range {min_disp}..{min_disp + ndisp - 1} px lies outside the "
                                      f"{width} px wide image (a match needs |d| < {width}); no pixel can match "
                                      "(check --min-disp)"))
 
@@ -73,7 +69,7 @@ def survey_pair(left: np.ndarray, right: np.ndarray, *, min_disp: int | None, nd
         try:
             estimate = estimate_range(left, right, matches, threads=threads)
         except DataError as exc:
-            raise DataError(_named(name, str(exc))) from None
+            raise DataError(named(name, str(exc))) from None
         span.update(min_disp=estimate.min_disp, ndisp=estimate.ndisp, evidence=estimate.as_dict())
     return {"range": span, **rows, "survey_seconds": round(time.perf_counter() - t0, 4)}
 
@@ -94,7 +90,7 @@ def _row_warnings(name: str, aligned: bool, description: str, require_aligned: b
         return []
     message = f"{ROWS_NOT_ALIGNED}: {description}; {RECTIFY_FIRST}"
     if require_aligned:
-        raise DataError(_named(name, f"{message} (--require-aligned)"))
+        raise DataError(named(name, f"{message} (--require-aligned)"))
     return [message]
 
 
