@@ -35,11 +35,13 @@ _LAZY = {
     "triangulate": "stereocli.api", "evaluate": "stereocli.api", "read_image": "stereocli.api",
     "MatchResult": "stereocli.api", "MatchRange": "stereocli.api", "RectifyResult": "stereocli.api",
     "TriangulationResult": "stereocli.api", "CalibrationResult": "stereocli.calib.stereo",
-    "EvalReport": "stereocli.evaluation.api",
+    "EvalReport": "stereocli.evaluation.api", "match_sequence": "stereocli.sequence",
+    "SequenceMatcher": "stereocli.sequence",
 }
 
-__all__ = ["CalibrationResult", "EvalReport", "MatchRange", "MatchResult", "RectifyResult", "TriangulationResult",
-           "__version__", "calibrate", "evaluate", "match", "read_image", "rectify", "triangulate"]
+__all__ = ["CalibrationResult", "EvalReport", "MatchRange", "MatchResult", "RectifyResult", "SequenceMatcher",
+           "TriangulationResult", "__version__", "calibrate", "evaluate", "match", "match_sequence", "read_image",
+           "rectify", "triangulate"]
 
 TYPE_CHECKING = False  # (typing.TYPE_CHECKING without importing typing: type checkers read it as True)
 if TYPE_CHECKING:
@@ -57,6 +59,7 @@ if TYPE_CHECKING:
     )
     from .calib.stereo import CalibrationResult
     from .evaluation.api import EvalReport
+    from .sequence import SequenceMatcher, match_sequence
 
 
 __getattr__, __dir__ = lazy_exports(__name__, _LAZY, globals())

@@ -17,7 +17,7 @@ LAYERS = {
     "errors": 0, "lazy": 0,
     "io": 1, "registry": 1, "config": 1, "viz": 1, "runinfo": 1, "process": 1, "runtime": 1,
     "matching": 2, "rectification": 2, "triangulation": 2, "evaluation": 2, "calib": 2, "synth": 2, "features": 2,
-    "api": 3, "apidoc": 3,
+    "api": 3, "apidoc": 3, "sequence": 3,
     "jobs": 4,
     "cli": 5,
     "__main__": 6,
