@@ -230,6 +230,7 @@ class SequenceRun:
         self.matcher = None
         self.matched: list[int] = []  # frame indices in the order the matcher took them
         self._readers: dict[str, Any] = {}
+        self.size: tuple[int, ...] | None = None  # (H, W) of the first frame decoded
 
     def __call__(self, item: WorkItem) -> dict:
         from ..features.survey import ROWS_NOT_ALIGNED
@@ -238,6 +239,12 @@ class SequenceRun:
         t_load = time.perf_counter()
         left, right = self._views(index)
         load_seconds = time.perf_counter() - t_load
+        if self.size is None:
+            self.size = left.shape[:2]
+        elif left.shape[:2] != self.size or right.shape[:2] != self.size:
+            (h, w), (hr, wr) = left.shape[:2], right.shape[:2]
+            raise DataError(f"{item.name}: views of {w}x{h} and {wr}x{hr}; the sequence's frames are "
+                            f"{self.size[1]}x{self.size[0]}")
         matcher = self._matcher()
         result = matcher.push(left, right)
         self.matched.append(index)
