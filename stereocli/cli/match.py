@@ -94,7 +94,8 @@ def match_cmd(ctx, inputs, outdir, config_files, sets, ndisp, min_disp, png16_sc
     if sequence or layout or wants_sequence(inputs):
         if right:
             raise ConfigError("--right: a sequence gives the left view's disparity only")
-        unavailable = {"--split-strips": split_strips, "--scheduler": scheduler, "--jobs": jobs > 1, "--retries": retries}
+        unavailable = {"--split-strips": split_strips, "--scheduler": scheduler, "--jobs": jobs > 1,
+                       "--retries": retries}
         for flag, given in unavailable.items():
             if given:
                 raise ConfigError(f"{flag}: not available for a sequence, which is matched in one process, "

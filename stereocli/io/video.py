@@ -15,7 +15,7 @@ import contextlib
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator
+from typing import Any, Iterator
 
 import numpy as np
 
@@ -103,7 +103,7 @@ class FrameReader:
 
     def __init__(self, path: str | os.PathLike) -> None:
         self.path = str(path)
-        self._capture = None
+        self._capture: Any = None
         self._next = 0  # index of the frame the next decode gives
 
     def read(self, index: int) -> np.ndarray:
@@ -113,11 +113,12 @@ class FrameReader:
         if self._capture is None or index < self._next:
             self.close()
             self._capture, self._next = _capture(self.path), 0
+        capture = self._capture
         while self._next < index:
-            if not self._capture.grab():
+            if not capture.grab():
                 raise DataError(f"{self.path}: the video ends after {self._next} frames (frame {index} asked for)")
             self._next += 1
-        ok, frame = self._capture.read()
+        ok, frame = capture.read()
         if not ok or frame is None:
             raise DataError(f"{self.path}: frame {index} does not decode (the video ends or is damaged there)")
         self._next += 1

@@ -264,11 +264,12 @@ class SequenceRun:
 
             opts = self.options
             shared = self.source.shared_inputs
-            self.matcher = SequenceMatcher(ndisp=opts["ndisp"], min_disp=opts["min_disp"], config=_config(opts["config"]),
+            self.matcher = SequenceMatcher(ndisp=opts["ndisp"], min_disp=opts["min_disp"],
+                                           config=_config(opts["config"]),
                                            left_valid=_load_mask(shared.get("left_valid")),
                                            right_valid=_load_mask(shared.get("right_valid")),
-                                           confidence=self.confidence,
-                                           keep_invalid=opts["keep_invalid"], temporal=opts["temporal"])
+                                           confidence=self.confidence, keep_invalid=opts["keep_invalid"],
+                                           temporal=opts["temporal"])
         return self.matcher
 
     def _views(self, index: int) -> tuple[np.ndarray, np.ndarray]:
@@ -303,7 +304,7 @@ class SequenceRun:
     def record(self) -> dict[str, Any]:
         """The run record's ``sequence`` entry: the source (kind, frame count, frame rate), the
         frames this run matched, and the frames whose survey was measured or refreshed."""
-        surveyed = []
+        surveyed: list[int] = []
         if self.matcher is not None:
             surveyed = [self.matched[k] for k in self.matcher.survey_frames if k < len(self.matched)]
         return {**self.source.as_record(), "temporal": self.options.get("temporal"), "matched": len(self.matched),
@@ -339,11 +340,10 @@ def write_sequence_video(path: str | Path, items: list[WorkItem], *, fps: float 
     if not present:
         raise DataError(f"--video-out {path}: no frame has a disparity map to show")
     first = read_pfm(present[0])
-    if viz_range is None:
-        opts = items[0].options
-        given = (opts.get("vmin"), opts.get("vmax"))
-        viz_range = given if None not in given else disparity_range(first)
-    lo, hi = float(viz_range[0]), float(viz_range[1])
+    lo, hi = viz_range if viz_range is not None else (items[0].options.get("vmin"), items[0].options.get("vmax"))
+    if lo is None or hi is None:
+        lo, hi = disparity_range(first)
+    lo, hi = float(lo), float(hi)
     shape = disparity_preview(first, lo, hi).shape
     size = (shape[1] + shape[1] % 2, shape[0] + shape[0] % 2)  # codecs want even sides
     fps = fps or DEFAULT_FPS
