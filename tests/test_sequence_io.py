@@ -170,6 +170,17 @@ def test_a_frame_of_another_size_fails_naming_both_sizes(run_cli, tmp_path):
     assert "000002: views of 80x48 and 80x48; the sequence's frames are 96x48" in r.err
 
 
+def test_require_aligned_fails_a_frame_whose_rows_are_out_of_line(run_cli, tmp_path):
+    frames = [(left, np.roll(right, 5, axis=0)) for left, right in textured_frames(2, height=192, width=256)]
+    root = write_folder(tmp_path / "seq", frames)
+    r = run_cli("match", "--sequence", root, "-o", tmp_path / "out", "--ndisp", "16", "--require-aligned")
+    assert r.code in (1, 3), r.err  # the frames whose survey measures the rows fail; the first one does
+    assert "Error: 000000: rows not aligned" in r.err and "(--require-aligned)" in r.err
+    assert not (tmp_path / "out" / "000000").exists()
+    r = run_cli("match", "--sequence", root, "-o", tmp_path / "warned", "--ndisp", "16")
+    assert r.code == 0 and "Warning: 000000: rows not aligned" in r.err
+
+
 def test_skip_existing_resumes_a_sequence_from_the_frames_to_redo(run_cli, tmp_path):
     root = write_folder(tmp_path / "seq", textured_frames(4))
     out = tmp_path / "out"
