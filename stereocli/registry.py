@@ -144,6 +144,11 @@ class StageTraits:
     small_twin: Callable | None = None
     #: ``f(params, width, ndisp) -> bytes``: fixed buffers per row strip (memory planner).
     buffer_bytes: Callable | None = None
+    #: ``f(params, height, width, ndisp) -> bytes or None``: an optimizer's own estimate of the
+    #: peak bytes of its search on a strip (volumes, per-pixel and row buffers), when it knows
+    #: better than the volume count (a coarse-to-fine search never holds the whole volume);
+    #: None: the volume count of ``volume_copies`` applies.
+    strip_bytes: Callable | None = None
     #: The stage's function takes ``coarse_level=f(state, params, cost) -> disparities``, which
     #: its coarse-to-fine search calls instead of computing its coarse level (the warm-up
     #: compiles the fine level's kernels in one process while another compiles the coarse level's).

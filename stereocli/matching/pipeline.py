@@ -60,9 +60,13 @@ FUSED = True
 _current_config: dict[int, PipelineConfig] = {}
 
 GIB = 1024.0**3
-#: Interpreter, numpy/numba/OpenCV libraries and compiled kernels (RSS before matching: 0.1 GiB
-#: with the kernels built at install, 0.2 GiB when the process compiles some).
-RUNTIME_BASE = 0.25 * GIB
+#: Interpreter, numpy/OpenCV libraries and compiled kernels: the RSS of ``stereocli match`` on a
+#: tiny pair with the kernels built at install (numba's compiler, when a kernel must compile,
+#: adds about 0.1 GiB: the warm-up compiles before a pair is planned).
+RUNTIME_BASE = 0.08 * GIB
+#: Bytes per pixel of a strip beside its search: the strip's maps (disparities both views,
+#: confidence, the integer maps) and the volume refinements' work maps.
+STRIP_MAP_BYTES = 24
 
 
 @dataclass
@@ -106,17 +110,40 @@ def _extra_volumes(call) -> float:
     return 0.0 if call.stage.kind == "cost" else 1.0
 
 
-def estimate_memory(config: PipelineConfig, height: int, width: int, ndisp: int) -> float:
-    """Estimated peak bytes for one strip of ``height`` rows (volumes + image-sized buffers).
+def estimate_memory(config: PipelineConfig, height: int, width: int, ndisp: int, image_rows: int = 0) -> float:
+    """Estimated peak bytes for one strip of ``height`` rows (volumes + image-sized buffers) of
+    an image of ``image_rows`` rows (0: the strip is the image).
 
     An optimizer may add fixed per-strip buffers through its ``buffer_bytes`` trait (e.g.
-    SGM's path-cost rows).
+    SGM's path-cost rows), or estimate its whole search itself (``strip_bytes``: a
+    coarse-to-fine search holds windows, not volumes).
     """
+    optimizer = config.optimizer.stage.traits
+    own = _own_search_bytes(config, height, width, ndisp, image_rows)
+    if own is not None:
+        return RUNTIME_BASE + own + float(height) * width * STRIP_MAP_BYTES
     volume = float(height) * width * ndisp * 4
     images = float(height) * width * 4 * 24  # images, census strings, disparities, masks
-    buffers = config.optimizer.stage.traits.buffer_bytes
+    buffers = optimizer.buffer_bytes
     fixed = RUNTIME_BASE + (float(buffers(config.optimizer.params, width, ndisp)) if buffers else 0.0)
     return volume * volume_copies(config) + images + fixed
+
+
+#: The largest coarse-to-fine search (its own estimate, ``strip_bytes``) a pair runs whole with
+#: ``runtime.strip_rows`` 0: a larger pair runs in strips of :data:`AUTO_STRIP_ROWS` rows,
+#: so the search's memory grows with the width, not with the whole image. Strip rows are matched
+#: with ``runtime.strip_overlap`` rows of context each side (the price: those rows are matched
+#: twice). MiddEval3 Q, KITTI and the other pairs up to about half a megapixel run whole.
+WHOLE_SEARCH_BYTES = 128 * 2**20
+AUTO_STRIP_ROWS = 256
+
+def _own_search_bytes(config: PipelineConfig, height: int, width: int, ndisp: int,
+                      image_rows: int = 0) -> float | None:
+    """The optimizer's own estimate of its search on a strip (``strip_bytes``), or None."""
+    estimate = config.optimizer.stage.traits.strip_bytes
+    if estimate is None or config.aggregation:  # (aggregation stages hold whole volumes)
+        return None
+    return estimate(config.optimizer.params, height, width, ndisp, image_rows or height)
 
 
 #: Extra (H, W) float32 maps of a preprocess or map stage whose ``map_copies`` trait is None.
@@ -195,34 +222,36 @@ def planned_peak(config: PipelineConfig, height: int, width: int, ndisp: int, st
     images = images or ImageMemory()
     rows = _strip_rows(strips, config.runtime.strip_overlap, height)
     beside = images.beside * ((len(strips) > 1) + images.mirrored)
-    return images.inputs + max(estimate_memory(config, rows, width, ndisp) + beside, RUNTIME_BASE + images.phases)
+    return images.inputs + max(estimate_memory(config, rows, width, ndisp, height) + beside,
+                               RUNTIME_BASE + images.phases)
 
 
 def plan_strips(config: PipelineConfig, height: int, width: int, ndisp: int,
                 images: ImageMemory | None = None) -> list[tuple[int, int]]:
     """Row ranges ``[(y0, y1), ...]`` to process; raises :class:`MemoryBudgetError` if impossible.
 
-    The budget counts the whole-image buffers ``images`` (:func:`image_memory`; None counts
-    none) beside the strips' volumes: the pair runs whole when everything fits, else in the
-    highest strips that fit beside them.
+    ``runtime.strip_rows`` 0 (automatic): a pair runs whole when it fits the budget, unless its
+    optimizer estimates its own search (``strip_bytes``: the coarse-to-fine SGM) at more than
+    :data:`WHOLE_SEARCH_BYTES`; then, and when the budget needs it, the pair runs in strips of
+    :data:`AUTO_STRIP_ROWS` rows or of fewer. The budget counts the
+    whole-image buffers ``images`` (:func:`image_memory`; None counts none) beside the strips'
+    volumes.
     """
     rt = config.runtime
     budget = rt.memory_gb * GIB
     images = images or ImageMemory()
     whole = [(0, height)]
-    if rt.strip_rows == 0 and planned_peak(config, height, width, ndisp, whole, images) <= budget:
-        return whole
     rows = rt.strip_rows
     if rows == 0:
-        fixed = estimate_memory(config, 0, width, ndisp)
-        per_row = estimate_memory(config, 1, width, ndisp) - fixed
-        beside = images.beside * (1 + images.mirrored)
-        rows = int((budget - fixed - images.inputs - beside) // per_row) - 2 * rt.strip_overlap
-        # Strip height is rounded down to a multiple of 16 so the plan is stable.
-        rows = (rows // 16) * 16
-    strips = [(y0, min(height, y0 + rows)) for y0 in range(0, height, rows)] if rows >= 16 else []
+        search = _own_search_bytes(config, height, width, ndisp)
+        if (search is None or search <= WHOLE_SEARCH_BYTES) and \
+                planned_peak(config, height, width, ndisp, whole, images) <= budget:
+            return whole
+        most = height if search is None else min(height, AUTO_STRIP_ROWS)
+        rows = _fitting_rows(config, height, width, ndisp, images, budget, most)
+    strips = _row_strips(height, rows) if rows >= 16 else []
     if not strips or planned_peak(config, height, width, ndisp, strips, images) > budget:
-        least = [(y0, min(height, y0 + 16)) for y0 in range(0, height, 16)]
+        least = _row_strips(height, 16)
         need_gb = planned_peak(config, height, width, ndisp, least, images) / GIB
         floor_gb = planned_peak(config, height, width, 1, least, images) / GIB
         if floor_gb > rt.memory_gb:  # the image buffers alone, whatever the range
@@ -235,6 +264,22 @@ def plan_strips(config: PipelineConfig, height: int, width: int, ndisp: int,
             f"(budget runtime.memory_gb={rt.memory_gb:g}); lower ndisp, downscale, or raise the budget"
         )
     return strips
+
+
+def _row_strips(height: int, rows: int) -> list[tuple[int, int]]:
+    return [(y0, min(height, y0 + rows)) for y0 in range(0, height, rows)]
+
+
+def _fitting_rows(config: PipelineConfig, height: int, width: int, ndisp: int, images: ImageMemory,
+                  budget: float, most: int) -> int:
+    """The most rows per strip, a multiple of 16 (so the plan is stable) up to ``most``, whose plan
+    fits ``budget``; 0 when not even 16 do."""
+    rows = 0
+    for candidate in range(16, max(most, 16) + 1, 16):
+        if planned_peak(config, height, width, ndisp, _row_strips(height, candidate), images) > budget:
+            break
+        rows = candidate
+    return rows
 
 
 def _as_valid(mask: np.ndarray | None, shape: tuple[int, int], what: str) -> np.ndarray | None:
@@ -666,7 +711,8 @@ def _strip_state(state: MatchState, a: int, b: int) -> MatchState:
     crop = lambda m: None if m is None else np.ascontiguousarray(m[a:b])  # noqa: E731
     return MatchState(np.ascontiguousarray(state.left[a:b]), np.ascontiguousarray(state.right[a:b]),
                       state.min_disp, state.ndisp,
-                      crop(state.left_valid), crop(state.right_valid), wants=wants, row_offset=a)
+                      crop(state.left_valid), crop(state.right_valid), wants=wants, row_offset=a,
+                      image_rows=state.image_shape[0])
 
 
 def _stage_reads(call, what: str, state: MatchState | None) -> bool:

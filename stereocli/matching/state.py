@@ -106,6 +106,9 @@ class MatchState:
     mirrored_disparity: np.ndarray | None = None  # (H, W) float32 px, right-referenced: for a ``needs_mirrored`` stage
     wants: Wants = field(default_factory=Wants)  # what later stages and outputs need
     row_offset: int = 0  # first image row of this (strip) state
+    # Rows of the whole image a strip state is cut from (0: the state is the whole image). A
+    # search decides its levels from the whole image's size, so every strip searches alike.
+    image_rows: int = 0
     notes: dict = field(default_factory=dict)  # stage name -> JSON-ready facts for the match record
     # Set by a stage that resampled the right view's rows (``row_align``): the
     # :class:`~stereocli.matching.vertical_offset.VerticalOffset` it moved them by. The pipeline
@@ -116,6 +119,12 @@ class MatchState:
     @property
     def shape(self) -> tuple[int, int]:
         return self.left.shape[:2]
+
+    @property
+    def image_shape(self) -> tuple[int, int]:
+        """``(H, W)`` of the whole image this state is (a strip of)."""
+        h, w = self.shape
+        return (self.image_rows or h, w)
 
     def gray(self, which: str = "left") -> np.ndarray:
         """The left or right image as (H, W) float32 grey (luma of RGB); computed once per image

@@ -75,6 +75,10 @@ class SGMParams:
                                      "and the full-range search is faster", unit="M cells", low=0.0, high=1e6)
     coarse_levels: int = param(1, "coarse-to-fine: coarser levels below full resolution (each halves the image; only "
                                "the coarsest searches the full range)", low=1, high=4)
+    coarse_max_volume: float = param(16.0, "coarse-to-fine: a level below full resolution searches its full range only "
+                                     "up to this many million cells (H·W·D at that level); a larger one searches "
+                                     "coarse to fine again, one level down (0: coarse_levels alone decides)",
+                                     unit="M cells", low=0.0, high=1e6)
 
 
 def quantization(cost_max: float, paths: int, p1: float, p2: float, levels: int) -> tuple[float, int, int, int]:
@@ -116,16 +120,21 @@ def coarse_disparity(state: MatchState, p: SGMParams, cost) -> np.ndarray:
     lo_d = int(np.floor(state.min_disp / 2))
     hi_d = int(np.ceil((state.min_disp + state.ndisp - 1) / 2))
     hi_d = lo_d + -(-(hi_d - lo_d + 1) // COARSE_RANGE_STEP) * COARSE_RANGE_STEP - 1
+    image_rows = -(-state.image_shape[0] // 2)
     sub = MatchState(half(state.left), half(state.right), lo_d, hi_d - lo_d + 1, half_mask(state.left_valid),
                      half_mask(state.right_valid),
-                     wants=Wants(right=True, integer_cost=state.wants.integer_cost, volume=False))
+                     wants=Wants(right=True, integer_cost=state.wants.integer_cost, volume=False),
+                     image_rows=image_rows)
     # run_sgm computes this level's costs itself (windowed if it searches coarse to fine again,
     # else the full range) and only its winners are read here.
     coarse_params = cost.stage.traits.coarse_params
     if coarse_params is not None:
         cost = replace(cost, params=coarse_params(cost.params))
-    run_sgm(sub, replace(p, paths=p.coarse_paths or p.paths, coarse_levels=p.coarse_levels - 1), cost,
-            coarse=p.coarse_levels > 1)
+    # A large pair's half-resolution volume is itself searched coarse to fine, so the full-range
+    # search (the largest volume of the search, and most of its time) stays small on any pair.
+    coarse = _searches_level_coarse_to_fine(p, p.coarse_levels, image_rows, sub.shape[1], sub.ndisp)
+    run_sgm(sub, replace(p, paths=p.coarse_paths or p.paths, coarse_levels=max(p.coarse_levels - 1, 1)), cost,
+            coarse=coarse)
     # run_sgm sets both maps (the coarse state wants the right view).
     return lr_check(required(sub.disparity, "optimizer.sgm: the coarse level left no disparity map"),
                     required(sub.disparity_right, "optimizer.sgm: the coarse level left no right-view map"), 1.0)
@@ -221,7 +230,7 @@ def run_sgm(state: MatchState, p: SGMParams, cost=None, coarse: bool | None = No
     (coarse-to-fine: see :func:`_run_windowed`). ``cost``: the configured cost StageCall, which
     the coarse-to-fine search runs itself (without it, only ``state.cost`` is used);
     ``coarse_level``: what that search's coarse level gives instead of computing it."""
-    h, w = state.shape
+    h, w = state.image_shape  # a strip searches as the whole image does
     if (p.coarse if coarse is None else coarse) and cost is not None and _coarse_to_fine_pays(p, h, w, state.ndisp):
         _run_windowed(state, p, cost, coarse_level)
         return
@@ -259,6 +268,57 @@ def _buffer_bytes(p: SGMParams, width: int, ndisp: int) -> float:
     return ks.STRIPES * (3 * width * nk * (ndisp + 2) * 2 + 4 * width * nk * 3)
 
 
+#: Coarse-to-fine memory (the planner's :func:`_strip_bytes`): a windowed level holds on average
+#: about ``WINDOW_ENTRIES + ndisp / WINDOW_ENTRIES_PER`` hypotheses per pixel (its windows rounded
+#: out to the ``align`` grid: wider for wider ranges, whose slopes span more disparities within
+#: a coarse neighbourhood), and ``WINDOW_PIXEL_BYTES`` per pixel beside them (windows, runs and
+#: offsets, penalties, winners and their sums both views, the guide and the strip's views).
+WINDOW_ENTRIES = 16
+WINDOW_ENTRIES_PER = 16
+WINDOW_PIXEL_BYTES = 100
+
+
+def _level_bytes(p: SGMParams, height: int, width: int, ndisp: int, windowed: bool) -> float:
+    """Peak bytes of one level of the search: windowed (uint8 costs and uint16 sums on each
+    pixel's run) or over the full range (the uint8 cost volume and the uint16 sums)."""
+    pixels = float(height) * width
+    rows = _buffer_bytes(p, width, ndisp)
+    if windowed:
+        entries = min(ndisp, WINDOW_ENTRIES + ndisp / WINDOW_ENTRIES_PER)
+        return pixels * (entries * 3 + WINDOW_PIXEL_BYTES) + rows
+    return pixels * (ndisp * 3 + WINDOW_PIXEL_BYTES) + rows
+
+
+def _strip_bytes(p: SGMParams, height: int, width: int, ndisp: int, image_rows: int) -> float | None:
+    """Peak bytes of the coarse-to-fine search on a ``height`` × ``width`` strip of an image of
+    ``image_rows`` rows (whose size decides the levels): its largest level (the levels run one
+    after the other, each keeping only its disparities for the next); None for the full-range
+    search, which the volume count covers."""
+    if not (p.coarse and _coarse_to_fine_pays(p, image_rows, width, ndisp)):
+        return None
+    peak = 0.0
+    levels = p.coarse_levels
+    windowed = True
+    while True:
+        peak = max(peak, _level_bytes(p, height, width, ndisp, windowed))
+        if not windowed:
+            return peak
+        # The next level down, as coarse_disparity makes it.
+        height, image_rows, width = -(-height // 2), -(-image_rows // 2), -(-width // 2)
+        ndisp = -(-(ndisp // 2 + 1) // COARSE_RANGE_STEP) * COARSE_RANGE_STEP
+        windowed = _searches_level_coarse_to_fine(p, levels, image_rows, width, ndisp)
+        levels = max(levels - 1, 1)
+
+
+def _searches_level_coarse_to_fine(p: SGMParams, levels: int, image_rows: int, width: int, ndisp: int) -> bool:
+    """Whether a level below full resolution (``levels``: p.coarse_levels left at the level
+    above) searches coarse to fine again: asked for by ``coarse_levels``, or its full range
+    larger than ``coarse_max_volume``; and only when that pays (:func:`_coarse_to_fine_pays`).
+    Sizes are the whole image's at that level, so every strip of a pair searches alike."""
+    too_large = 0 < p.coarse_max_volume * 1e6 < float(image_rows) * width * ndisp
+    return (levels > 1 or too_large) and _coarse_to_fine_pays(p, image_rows, width, ndisp)
+
+
 def _searches_coarse_to_fine(p: SGMParams) -> bool:
     """when coarse: true (it runs the cost stage at half resolution, then on its windows)"""
     return p.coarse
@@ -269,7 +329,7 @@ def _searches_coarse_to_fine(p: SGMParams) -> bool:
 # (census) are used as they are: no float volume, no quantised copy, only the uint16 sums.
 @register("optimizer", "sgm", SGMParams,
           traits=StageTraits(volume_copies=0.25, accepts_integer_cost=True, integer_volume_copies=0.5,
-                             buffer_bytes=_buffer_bytes, runs_cost=_searches_coarse_to_fine,
+                             buffer_bytes=_buffer_bytes, strip_bytes=_strip_bytes, runs_cost=_searches_coarse_to_fine,
                              small_twin=_small_twin, takes_coarse_level=True, reads_left_colour=False,
                              reads_right_colour=False))
 def sgm(state: MatchState, p: SGMParams, cost=None, coarse_level: CoarseLevel | None = None) -> None:
