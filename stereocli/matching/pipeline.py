@@ -47,10 +47,11 @@ from ..errors import DataError, MemoryBudgetError
 from .config import PipelineConfig
 from .cost import run_cost_stage
 from .kernels.images import luma
+from .kernels.maps import holes_and_range
 from .kernels.winners import wta_right
 from .refine import clear_invalid_left
 from .state import MatchState, Wants, required
-from .visibility import find_unmatched, keep_in_range
+from .visibility import find_unmatched, keep_in_range, range_bounds
 
 #: Use fused cost + WTA kernels when the pipeline allows it (False forces the volume path).
 FUSED = True
@@ -508,6 +509,7 @@ def finish(prepared: PreparedPair, results: Iterable[StripResult], config: Pipel
     # Pixels invalid at some point from here on, filled or not: their confidence is 0 (a map
     # stage may make the confidence map too).
     holes = ~np.isfinite(disparity)
+    lo, hi = range_bounds(state.min_disp, state.ndisp)
     timings["unmatched"] = time.perf_counter() - t0
     state.disparity, state.disparity_right = disparity, maps["disparity_right"]
     state.confidence = maps["confidence"]
@@ -523,8 +525,11 @@ def finish(prepared: PreparedPair, results: Iterable[StripResult], config: Pipel
             timings[key] = timings.get(key, 0.0) + time.perf_counter() - t0
         _timed(timings, f"refinement.{call.stage.name}", call.stage.func, state, call.params)
         state.mirrored_disparity = None
-        state.disparity = keep_in_range(state.disparity, state.min_disp, state.ndisp)
-        holes |= ~np.isfinite(state.disparity)
+        # One compiled pass marks the new holes and finds values outside the range (rare: a
+        # plane fit reaching beyond it), which only then are clamped.
+        if holes_and_range(required(state.disparity, f"refinement.{call.stage.name}: left no disparity map"),
+                           lo, hi, holes):
+            state.disparity = keep_in_range(state.disparity, state.min_disp, state.ndisp)
     filled = any(c.stage.traits.fills_holes for c in map_stages)
     state.disparity = _settle_outside_views(state.disparity, unmatched.outside_views, filled)
     clear_invalid_left(state)

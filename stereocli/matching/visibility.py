@@ -65,10 +65,16 @@ def find_unmatched(shape: tuple[int, int], min_disp: int, ndisp: int, left_valid
     return Unmatched(np.ascontiguousarray(outside))
 
 
+def range_bounds(min_disp: int, ndisp: int) -> tuple[np.float32, np.float32]:
+    """The disparities a map may hold for the range ``[min_disp, min_disp + ndisp)``: the range
+    plus :data:`RANGE_SLACK` each side, px."""
+    return np.float32(min_disp - RANGE_SLACK), np.float32(min_disp + ndisp - 1 + RANGE_SLACK)
+
+
 def keep_in_range(disparity: np.ndarray, min_disp: int, ndisp: int) -> np.ndarray:
     """``disparity`` (H, W) float32 with finite values clamped to ``[min_disp − 1, min_disp + ndisp]``
     (the range plus :data:`RANGE_SLACK`); the same array when nothing is outside."""
-    lo, hi = np.float32(min_disp - RANGE_SLACK), np.float32(min_disp + ndisp - 1 + RANGE_SLACK)
+    lo, hi = range_bounds(min_disp, ndisp)
     if disparity.size == 0:
         return disparity
     finite = disparity != np.inf  # +inf is the only non-finite value a map holds

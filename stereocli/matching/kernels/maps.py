@@ -207,3 +207,31 @@ def disparity_bins(disp: np.ndarray, min_disp: int, ndisp: int) -> np.ndarray:
     bins = np.empty(disp.shape, np.int32)
     for_rows(_disparity_bins_rows, disp.shape[0], disp, int(min_disp), int(ndisp), bins)
     return bins
+
+
+@chunk_kernel
+def _holes_and_range_rows(disp, lo: float, hi: float, holes, outside, y0: int, y1: int) -> None:
+    """:func:`holes_and_range` on rows ``y0`` to ``y1`` (exclusive)."""
+    w = disp.shape[1]
+    low = np.float32(lo)
+    high = np.float32(hi)
+    for y in range(y0, y1):
+        count = 0
+        for x in range(w):
+            d = disp[y, x]
+            if d == INF:
+                holes[y, x] = True
+            elif d < low or d > high:
+                count += 1
+        outside[y] = count
+
+
+def holes_and_range(disp: np.ndarray, lo: float, hi: float, holes: np.ndarray) -> bool:
+    """Mark the invalid (+inf) pixels of ``disp`` (H, W) float32 in ``holes`` (H, W) bool (in place,
+    added to what it holds) and tell whether any finite value lies outside ``[lo, hi]``: one pass
+    instead of numpy's several over the map."""
+    outside = np.zeros(disp.shape[0], np.int64)
+    for_rows(_holes_and_range_rows, disp.shape[0], np.ascontiguousarray(disp, dtype=np.float32), float(lo), float(hi),
+             holes, outside)
+    return bool(outside.any())
+
