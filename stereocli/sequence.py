@@ -8,25 +8,89 @@ frame-by-frame results).
 
 Every frame's :class:`~stereocli.api.MatchResult` has ``notes["sequence"]``: the frame index,
 whether the survey was ``measured``, ``reused`` or ``refreshed`` for it, and what the temporal
-reuse did (e.g. the share of pixels matched over the full range).
+reuse did (e.g. the share of pixels matched again).
+
+The reuse rule (``temporal="on"``; ``docs/design.md`` states it for users):
+
+* **Survey.** The first frame is matched as :func:`stereocli.match` matches a pair: the range is
+  estimated (unless given) and the rows measured. Later frames reuse both: the range as it is,
+  the rows through the preprocess stages' ``repeated_params`` (``row_align`` applies the first
+  frame's plane without tracking). The survey is refreshed (range estimated and rows measured
+  again, the frame matched again with them) when more than :data:`RANGE_END_SHARE` of a frame's
+  pixels lie at the ends of an estimated range: something came nearer or went farther than the
+  range holds. A range given by the caller is never refreshed.
+* **Change.** Each view is compared, 3 x 3 box-blurred, with the view the pixel's value was last
+  measured on; a pixel has changed where the difference exceeds :data:`GATE_SIGMAS` standard
+  deviations of the blurred noise. The noise level is estimated from the frame differences
+  (median absolute difference, and the median of their Laplacian-like response, whichever is
+  smaller, the smallest over the sequence), so the gate needs no setting. Specks below 3 x 3 px
+  are dropped (noise), right-view changes are carried to the left pixels that match there, and
+  the mask grows by :data:`RESET_RADIUS` px (the census window and the edge's blur), so the
+  place an object left and the place it reached both count as changed: edges do not trail.
+* **Where the image changed** the pixels are matched again over the full range: each run of
+  changed rows is cut out with :data:`CONTEXT` px of context (and the range's width to the left,
+  so every match stays inside the cut) and matched with the sequence's config; the changed
+  pixels take the new values as they are (the filter restarts there).
+* **Where the scene holds still** the previous value stands, and one band of rows in
+  ``refresh_bands`` is matched again each frame (all rows every ``refresh_bands`` frames) over a
+  range narrowed to the band's previous disparities (1st to 99th percentile, +-
+  :data:`NARROW_MARGIN` px), falling back to the previous value where the narrowed result is not
+  confident (at an end of the narrowed range).
+* **Temporal filter.** A still pixel's value is the running mean of its measurements that agree
+  with it within :data:`AGREE_PX` (at most :data:`MAX_WEIGHT` frames' worth, so a slow drift
+  still comes through); a measurement that disagrees lowers the pixel's weight, and at weight 0
+  the new value replaces it (a value that was wrong, or a change too faint for the gate).
+* When the changed regions cover more than :data:`WHOLE_FRAME_SHARE` of the frame, the whole
+  frame is matched again (still pixels still go through the filter).
 """
 
 from __future__ import annotations
 
+import time
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any, Iterable, Iterator
 
 import numpy as np
 
-from .errors import ConfigError
+from .errors import ConfigError, DataError, named
 
 if TYPE_CHECKING:
     from .api import Assignments, ConfigLike, MatchResult, PathLike
     from .io.middlebury import MiddleburyCalib
+    from .matching.config import PipelineConfig
 
 __all__ = ["TEMPORAL_MODES", "SequenceMatcher", "match_sequence"]
 
 #: Values of ``temporal=``.
 TEMPORAL_MODES = ("on", "off")
+
+#: Still rows are matched again one band in this many per frame (``refresh_bands=``).
+REFRESH_BANDS = 4
+#: A pixel has changed where its blurred difference exceeds this many standard deviations of the
+#: blurred noise (one false alarm in about 10^5 pixels, before the speck filter drops them).
+GATE_SIGMAS = 4.5
+#: px the change mask grows by: the census window's half (2) and an edge's blur.
+RESET_RADIUS = 4
+#: px of context around a region matched again (SGM paths, the aggregation windows).
+CONTEXT = 16
+#: px around the changed pixels whose new values go through the filter.
+PASTE_MARGIN = 6
+#: px beyond the band's previous disparities a narrowed refresh searches, each side.
+NARROW_MARGIN = 3
+#: A measurement within this many px of the filtered value agrees with it.
+AGREE_PX = 1.0
+#: Most frames of evidence a still pixel's running mean holds.
+MAX_WEIGHT = 8
+#: Share of a frame's pixels at an end of an estimated range that refreshes the survey.
+RANGE_END_SHARE = 0.02
+#: Frames after a survey before the range's evidence may refresh it again.
+REFRESH_COOLDOWN = 10
+#: Changed regions covering more than this share of the frame: the whole frame is matched again.
+WHOLE_FRAME_SHARE = 0.7
+#: The noise is estimated on this many frames, then on every this-many-th.
+NOISE_FRAMES = 8
+#: Smallest noise level the gate assumes, grey levels (8-bit rounding alone gives 0.3).
+MIN_SIGMA = 0.5
 
 
 class SequenceMatcher:
@@ -38,9 +102,12 @@ class SequenceMatcher:
         As for :func:`stereocli.match`; they hold for every frame.
     temporal : {"on", "off"}, default "on"
         ``"on"`` reuses the previous frames (narrowed search, temporal filter); ``"off"``
-        matches each frame on its own (the survey is still reused).
+        matches each frame on its own (the survey is still reused): each frame's map is
+        :func:`stereocli.match`'s with the sequence's range.
     name : str, optional
         The sequence's name, put before error messages and warnings.
+    refresh_bands : int, default 4
+        ``temporal="on"``: still rows are matched again one band in ``refresh_bands`` per frame.
 
     Examples
     --------
@@ -60,15 +127,19 @@ class SequenceMatcher:
                  config: ConfigLike = None, set: Assignments = None, threads: int | None = None,
                  calib: PathLike | MiddleburyCalib | None = None, left_valid: np.ndarray | None = None,
                  right_valid: np.ndarray | None = None, confidence: bool = False, keep_invalid: bool = False,
-                 temporal: str = "on", name: str = "") -> None:
+                 temporal: str = "on", name: str = "", refresh_bands: int = REFRESH_BANDS) -> None:
         from .api import match_config
 
         if temporal not in TEMPORAL_MODES:
             raise ConfigError(f"temporal must be one of {', '.join(TEMPORAL_MODES)}, got {temporal!r}")
+        if isinstance(refresh_bands, bool) or not isinstance(refresh_bands, (int, np.integer)) or refresh_bands < 1:
+            raise ConfigError(f"refresh_bands must be a whole number >= 1, got {refresh_bands!r}")
         self.config = match_config(preset, config, set, threads)
         self.temporal = temporal
         self.name = name
+        self.refresh_bands = int(refresh_bands)
         self._range: tuple[int | None, int | str | None] = (min_disp, ndisp)
+        self._source: str | None = None  # the range's source once known
         self._calib = calib
         self._masks = (left_valid, right_valid)
         self._flags = {"confidence": confidence, "keep_invalid": keep_invalid}
@@ -76,29 +147,241 @@ class SequenceMatcher:
         #: Frame indices whose survey was measured (the first) or refreshed.
         self.survey_frames: list[int] = []
         self.previous: MatchResult | None = None
+        self._state: _TemporalState | None = None
+        self._repeat: PipelineConfig | None = None  # the config that repeats the survey's rows
+        self._alignment: dict | None = None
+        self._shape: tuple[int, int] | None = None
+        self._surveyed = False
+        self._ends_at_survey = 0.0  # share of pixels at the range's ends on the surveyed frame
+
+    # ------------------------------------------------------------------ public
 
     def push(self, left: np.ndarray, right: np.ndarray) -> MatchResult:
         """Match the next frame, ``left``/``right`` as :func:`stereocli.match` takes them."""
-        from .api import match
+        from .api import _as_image
 
-        min_disp, ndisp = self._range
-        survey = "reused"
-        if self.previous is None:
+        left, right = _as_image(left, "left", self.name), _as_image(right, "right", self.name)
+        if self._shape is not None and left.shape[:2] != self._shape:
+            h, w = self._shape
+            raise DataError(named(self.name, f"frame {self.frame} is {left.shape[1]}x{left.shape[0]}; the "
+                                             f"sequence's frames are {w}x{h}"))
+        if not self._surveyed:
             survey = "measured"
-            self.survey_frames.append(self.frame)
-        result = match(left, right, ndisp=ndisp, min_disp=min_disp, config=self.config, calib=self._calib,
-                       left_valid=self._masks[0], right_valid=self._masks[1], name=self.name, **self._flags)
-        if self.previous is None:  # the first frame's survey holds for the rest of the sequence
-            self._range = (result.range.min_disp, result.range.ndisp)
-            self._calib = None
-        result.notes["sequence"] = {"frame": self.frame, "survey": survey, "temporal": self.temporal}
+            result = self._match_whole(left, right, survey=True)
+        elif self.temporal == "off" or self._state is None:
+            survey = "reused"
+            result = self._match_whole(left, right, survey=False)
+        else:
+            survey = "reused"
+            result = self._match_reusing(left, right)
+        if survey == "reused" and self._range_drifted(result.disparity):
+            survey = "refreshed"
+            result = self._match_whole(left, right, survey=True)
+        self._shape = left.shape[:2]
+        if self.temporal == "on" and (survey != "reused" or self._state is None):
+            self._restart(left, right, result)
+        sequence = {"frame": self.frame, "survey": survey, "temporal": self.temporal}
+        if self.temporal == "on":
+            sequence.update(self._state.last if self._state is not None and survey == "reused" else
+                            {"rematched": 1.0, "changed": 1.0})
+            if self._state is not None and self._state.gate.sigma is not None:
+                sequence["noise_sigma"] = round(float(self._state.gate.sigma), 3)
+        result.notes["sequence"] = sequence
         self.previous = result
         self.frame += 1
         return result
 
     def record(self) -> dict[str, Any]:
         """What the sequence did so far, for the run record (frames, survey refreshes)."""
-        return {"frames": self.frame, "survey_frames": list(self.survey_frames), "temporal": self.temporal}
+        out: dict[str, Any] = {"frames": self.frame, "survey_frames": list(self.survey_frames),
+                               "temporal": self.temporal}
+        if self.previous is not None:
+            out["range"] = {"min_disp": self.previous.range.min_disp, "ndisp": self.previous.range.ndisp,
+                            "source": self.previous.range.source}
+        if self._state is not None and self._state.gate.sigma is not None:
+            out["noise_sigma"] = round(float(self._state.gate.sigma), 3)
+        return out
+
+    def seed(self, disparity: np.ndarray, left: np.ndarray, right: np.ndarray, *, min_disp: int, ndisp: int,
+             frame: int | None = None, row_align: dict | None = None) -> None:
+        """Resume after a frame matched earlier (e.g. ``--skip-existing``): its map ``disparity``
+        ((H, W) float32, +inf invalid), its views and its range ``[min_disp, min_disp + ndisp)``
+        become the previous frame's. ``frame``: that frame's index (the next push is
+        ``frame + 1``); ``row_align``: its ``row_align`` note, so later frames repeat its rows
+        (without it the next frame measures them again).
+
+        The range counts as an estimated one (a drift refreshes it) and as reused: the survey
+        is not measured again for the next frame.
+        """
+        from .api import _as_image
+
+        left, right = _as_image(left, "left", self.name), _as_image(right, "right", self.name)
+        disparity = np.asarray(disparity, np.float32)
+        if disparity.shape != left.shape[:2] or left.shape[:2] != right.shape[:2]:
+            raise DataError(named(self.name, f"seed: disparity {disparity.shape} and views {left.shape[:2]}, "
+                                             f"{right.shape[:2]} differ in size"))
+        self._range = (int(min_disp), int(ndisp))
+        self._source = "estimated"
+        self._surveyed = True
+        self._calib = None
+        self._shape = left.shape[:2]
+        if frame is not None:
+            self.frame = int(frame) + 1
+        self._repeat = self._repeating_config({"row_align": row_align} if row_align is not None else None)
+        if self.temporal == "on":
+            self._state = _TemporalState(_grey(left), _grey(right), disparity.copy())
+
+    # ------------------------------------------------------------------ whole frames
+
+    def _match_whole(self, left: np.ndarray, right: np.ndarray, *, survey: bool) -> MatchResult:
+        """The frame matched as :func:`stereocli.match` matches it: with the sequence's range, or
+        with ``survey`` the range estimated (unless given) and the rows measured anew."""
+        from .api import match
+
+        min_disp, ndisp = self._range
+        if survey and self._source == "estimated":
+            min_disp, ndisp = None, "auto"
+        calib = self._calib if survey else None
+        result = match(left, right, ndisp=ndisp, min_disp=min_disp, config=self.config, calib=calib,
+                       left_valid=self._masks[0], right_valid=self._masks[1], name=self.name, **self._flags)
+        if survey:
+            self.survey_frames.append(self.frame)
+            self._range = (result.range.min_disp, result.range.ndisp)
+            self._source = result.range.source
+            self._calib = None
+            self._alignment = result.alignment
+            self._surveyed = True
+            self._ends_at_survey = self._share_at_ends(result.disparity)
+            if self.temporal == "on":
+                self._repeat = self._repeating_config(result.notes)
+        return result
+
+    def _repeating_config(self, notes: dict | None) -> PipelineConfig | None:
+        """The config whose preprocess stages repeat what they did on the surveyed frame
+        (``repeated_params``), or None when ``notes`` are unknown (the rows are measured)."""
+        if notes is None:
+            return None
+        calls = [replace(c, params=c.stage.traits.repeated_params(c.params, notes.get(c.stage.name)))
+                 if c.stage.traits.repeated_params else c for c in self.config.preprocess]
+        return replace(self.config, preprocess=calls)
+
+    def _share_at_ends(self, disparity: np.ndarray) -> float:
+        """Share of the pixels (every other row and column) within half a pixel of an end of the range."""
+        min_disp, ndisp = self._range
+        assert isinstance(min_disp, int) and isinstance(ndisp, int)
+        sample = disparity[::2, ::2]
+        ends = (sample <= min_disp + 0.5) | ((sample >= min_disp + ndisp - 1.5) & np.isfinite(sample))
+        return float(np.count_nonzero(ends)) / max(sample.size, 1)
+
+    def _range_drifted(self, disparity: np.ndarray) -> bool:
+        """Whether the survey's evidence drifted: an estimated range with more than
+        :data:`RANGE_END_SHARE` of the pixels at its ends, and more than twice as many as on the
+        surveyed frame (a range the estimate cannot do better with is not refreshed again and again)."""
+        if self._source != "estimated":
+            return False
+        share = self._share_at_ends(disparity)
+        return share > max(RANGE_END_SHARE, 2.0 * self._ends_at_survey)
+
+    def _restart(self, left: np.ndarray, right: np.ndarray, result: MatchResult) -> None:
+        """Start the temporal state over from a whole frame's ``result``."""
+        self._state = _TemporalState(_grey(left), _grey(right), result.disparity.copy(),
+                                     None if result.confidence is None else result.confidence.copy())
+
+    # ------------------------------------------------------------------ reuse
+
+    def _match_reusing(self, left: np.ndarray, right: np.ndarray) -> MatchResult:
+        """A later frame with ``temporal="on"``: changed regions over the full range, one band of
+        still rows over a narrowed range, the temporal filter over what was matched."""
+        from .api import MatchRange, MatchResult
+        from .matching.pipeline import match_pair, prepare, release_config
+
+        state = self._state
+        assert state is not None
+        min_disp, ndisp = self._range
+        assert isinstance(min_disp, int) and isinstance(ndisp, int)
+        t0 = time.perf_counter()
+        grey_l, grey_r = _grey(left), _grey(right)
+        changed = state.gate.changed(grey_l, grey_r, state.disparity)
+        h, w = changed.shape
+        regions = _changed_regions(changed, min_disp, ndisp)
+        if sum(r.area for r in regions) > WHOLE_FRAME_SHARE * h * w:
+            regions = [_Region(slice(0, h), slice(0, w), slice(0, h), slice(0, w), min_disp, ndisp, False)]
+        else:
+            band = self._refresh_band(changed, h, w, min_disp, ndisp)
+            if band is not None:
+                regions.append(band)
+        config = self._repeat or self.config
+        crop_config = replace(config, preprocess=[])
+        timings: dict[str, float] = {}
+        memory = 0.0
+        warnings: list[str] = []
+        try:
+            prepared = prepare(left, right, config, min_disp=min_disp, ndisp=ndisp, left_valid=self._masks[0],
+                               right_valid=self._masks[1], keep_invalid=self._flags["keep_invalid"],
+                               want_confidence=self._flags["confidence"])
+        finally:
+            release_config()
+        timings.update(prepared.timings)
+        views = prepared.state
+        if self._repeat is None:  # the rows were measured on this frame: repeat them from now on
+            self._repeat = self._repeating_config(views.notes)
+        rematched = np.zeros(changed.shape, bool)
+        for region in regions:
+            rows, cols = region.rows, region.cols
+            crop = lambda m: None if m is None else np.ascontiguousarray(m[rows, cols])  # noqa: E731
+            part = match_pair(crop(views.left), crop(views.right), crop_config, min_disp=region.min_disp,
+                              ndisp=region.ndisp, left_valid=crop(views.left_valid),
+                              right_valid=crop(views.right_valid), keep_invalid=self._flags["keep_invalid"],
+                              want_confidence=self._flags["confidence"])
+            for key, seconds in part.timings.items():
+                timings[key] = timings.get(key, 0.0) + seconds
+            memory = max(memory, part.memory_estimate_gb)
+            inner = (slice(region.paste_rows.start - rows.start, region.paste_rows.stop - rows.start),
+                     slice(region.paste_cols.start - cols.start, region.paste_cols.stop - cols.start))
+            measured = part.disparity[inner]
+            target = (region.paste_rows, region.paste_cols)
+            if region.narrowed:
+                # At an end of the narrowed range the pixel may lie beyond it: not confident. The
+                # changed pixels, and those already matched again, have their own region.
+                lo, hi = region.min_disp, region.min_disp + region.ndisp - 1
+                beyond = ((measured <= lo + 0.5) & (lo > min_disp)) | ((measured >= hi - 0.5) &
+                                                                        (hi < min_disp + ndisp - 1))
+                trust = ~(beyond | changed[target] | rematched[target])
+                reset = np.zeros(measured.shape, bool)
+            else:
+                trust = np.ones(measured.shape, bool)
+                reset = changed[target]
+            state.update(target, measured, reset, trust,
+                         None if part.confidence is None else part.confidence[inner])
+            rematched[target] = True
+        state.gate.accept(changed)
+        state.last = {"rematched": round(float(rematched.mean()), 4), "changed": round(float(changed.mean()), 4),
+                      "regions": len(regions)}
+        seconds = time.perf_counter() - t0
+        return MatchResult(disparity=state.disparity.copy(),
+                           range=MatchRange(min_disp, ndisp, self._source or "given"),
+                           confidence=None if state.confidence is None else state.confidence.copy(),
+                           timings=timings, notes=dict(views.notes), alignment=self._alignment, warnings=warnings,
+                           seconds=seconds, memory_estimate_gb=memory, config=self.config)
+
+    def _refresh_band(self, changed: np.ndarray, h: int, w: int, min_disp: int, ndisp: int) -> _Region | None:
+        """This frame's band of still rows to match again, over the range its previous values
+        narrow (None when the band is all changed)."""
+        state = self._state
+        assert state is not None
+        band = (self.frame - 1) % self.refresh_bands
+        y0, y1 = band * h // self.refresh_bands, (band + 1) * h // self.refresh_bands
+        if y1 <= y0:
+            return None
+        values = state.disparity[y0:y1:2, ::2]
+        still = np.isfinite(values) & ~changed[y0:y1:2, ::2]
+        if not still.any():
+            return None
+        low, high = np.percentile(values[still], [1.0, 99.0])
+        lo = max(min_disp, int(np.floor(low)) - NARROW_MARGIN)
+        hi = min(min_disp + ndisp - 1, int(np.ceil(high)) + NARROW_MARGIN)
+        rows = slice(max(0, y0 - CONTEXT), min(h, y1 + CONTEXT))
+        return _Region(rows, slice(0, w), slice(y0, y1), slice(0, w), lo, hi - lo + 1, True)
 
 
 def match_sequence(frames: Iterable[tuple[np.ndarray, np.ndarray]], **options: Any) -> Iterator[MatchResult]:
@@ -119,3 +402,161 @@ def match_sequence(frames: Iterable[tuple[np.ndarray, np.ndarray]], **options: A
     matcher = SequenceMatcher(**options)
     for left, right in frames:
         yield matcher.push(left, right)
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def _grey(image: np.ndarray) -> np.ndarray:
+    """(H, W) float32 grey of a view (uint8, uint16 or float; RGB or grey), 0..255."""
+    from .io.images import to_float_image
+    from .matching.kernels.images import luma
+
+    if image.ndim == 3:
+        return luma(image if image.dtype == np.uint8 else to_float_image(image))
+    return to_float_image(image)
+
+
+def _blur(grey: np.ndarray) -> np.ndarray:
+    import cv2
+
+    return cv2.blur(grey, (3, 3), borderType=cv2.BORDER_REFLECT)
+
+
+@dataclass
+class _Region:
+    """A region matched again: the crop (``rows``, ``cols``), the pixels whose new values count
+    (``paste_rows``, ``paste_cols``, inside the crop) and its range; ``narrowed`` for a refresh
+    band searched over its previous disparities only."""
+
+    rows: slice
+    cols: slice
+    paste_rows: slice
+    paste_cols: slice
+    min_disp: int
+    ndisp: int
+    narrowed: bool
+
+    @property
+    def area(self) -> int:
+        return (self.rows.stop - self.rows.start) * (self.cols.stop - self.cols.start)
+
+
+def _changed_regions(changed: np.ndarray, min_disp: int, ndisp: int) -> list[_Region]:
+    """One region per run of rows with changed pixels (runs closer than twice the context
+    merged): the changed columns, with :data:`CONTEXT` px around and the range's width on the
+    side the matches lie (so every changed pixel's match stays inside the crop)."""
+    h, w = changed.shape
+    rows = np.flatnonzero(changed.any(axis=1))
+    if rows.size == 0:
+        return []
+    breaks = np.flatnonzero(np.diff(rows) > 2 * CONTEXT)
+    starts = np.concatenate([[rows[0]], rows[breaks + 1]])
+    stops = np.concatenate([rows[breaks], [rows[-1]]]) + 1
+    regions = []
+    max_disp = min_disp + ndisp - 1
+    for y0, y1 in zip(starts.tolist(), stops.tolist()):
+        cols = np.flatnonzero(changed[y0:y1].any(axis=0))
+        x0, x1 = int(cols[0]), int(cols[-1]) + 1
+        c0 = max(0, x0 - max(max_disp, 0) - CONTEXT)
+        c1 = min(w, x1 + max(-min_disp, 0) + CONTEXT)
+        if c1 - c0 > 0.75 * w:  # little to save: the whole rows, without a cut near the pixels
+            c0, c1 = 0, w
+        regions.append(_Region(slice(max(0, y0 - CONTEXT), min(h, y1 + CONTEXT)), slice(c0, c1),
+                               slice(max(0, y0 - PASTE_MARGIN), min(h, y1 + PASTE_MARGIN)),
+                               slice(max(c0, x0 - PASTE_MARGIN), min(c1, x1 + PASTE_MARGIN)), min_disp, ndisp,
+                               False))
+    return regions
+
+
+class _ChangeGate:
+    """Which pixels changed since their value was last measured (the module docstring's rule)."""
+
+    #: A Laplacian-like kernel whose response to white noise of std s has std 6 s (Immerkær 1996)
+    #: and to smooth image content little.
+    _NOISE_KERNEL = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
+
+    def __init__(self, grey_l: np.ndarray, grey_r: np.ndarray) -> None:
+        self.reference = [_blur(grey_l), _blur(grey_r)]  # the views each pixel's value was measured on
+        self.latest = grey_l  # the left view of the frame before, for the noise estimate
+        self.estimates = 0
+        self.blurred: list[np.ndarray] = []
+        self.changed_right: np.ndarray | None = None
+        self.sigma: float | None = None
+
+    def _noise(self, grey: np.ndarray, before: np.ndarray) -> float:
+        """Noise standard deviation of one view (grey levels) from its difference with the frame before."""
+        import cv2
+
+        diff = (grey - before)[::2, ::2]
+        by_median = float(np.median(np.abs(diff))) / (0.6745 * np.sqrt(2.0))
+        response = cv2.filter2D(np.ascontiguousarray(diff), -1, self._NOISE_KERNEL)
+        # The subsampled difference is white noise too; the kernel's response to it has std 6 s√2.
+        by_kernel = float(np.median(np.abs(response[1:-1, 1:-1]))) / (0.6745 * 6.0 * np.sqrt(2.0))
+        return max(min(by_median, by_kernel), MIN_SIGMA)
+
+    def changed(self, grey_l: np.ndarray, grey_r: np.ndarray, disparity: np.ndarray) -> np.ndarray:
+        """(H, W) bool in left coordinates: the pixels whose left view changed, or whose match in
+        the right view (at ``x - disparity``) did, grown by :data:`RESET_RADIUS` px."""
+        import cv2
+
+        if self.estimates < NOISE_FRAMES or self.estimates % NOISE_FRAMES == 0:
+            estimate = self._noise(grey_l, self.latest)
+            self.sigma = estimate if self.sigma is None else min(self.sigma, estimate)
+        self.estimates += 1
+        self.latest = grey_l
+        # Two blurred noisy views differ with std s·√2/3 (3 x 3 box); one grey level more for rounding.
+        threshold = GATE_SIGMAS * self.sigma * np.sqrt(2.0) / 3.0 + 1.0
+        self.blurred = [_blur(grey_l), _blur(grey_r)]
+        speck = np.ones((3, 3), np.uint8)
+        masks = []
+        for now, before in zip(self.blurred, self.reference):
+            moved = (cv2.absdiff(now, before) > threshold).astype(np.uint8)
+            masks.append(cv2.morphologyEx(moved, cv2.MORPH_OPEN, speck))
+        left, right = masks
+        h, w = left.shape
+        if right.any():
+            columns = np.arange(w, dtype=np.float32)[None, :] - np.where(np.isfinite(disparity), disparity, 0)
+            index = np.clip(np.rint(columns), 0, w - 1).astype(np.intp)
+            left |= np.take_along_axis(right, index, axis=1)
+        grow = np.ones((2 * RESET_RADIUS + 1, 2 * RESET_RADIUS + 1), np.uint8)
+        self.changed_right = cv2.dilate(right, grow).astype(bool)
+        return cv2.dilate(left, grow).astype(bool)
+
+    def accept(self, changed: np.ndarray) -> None:
+        """The changed pixels' values were measured on this frame's views: they are the new reference."""
+        np.copyto(self.reference[0], self.blurred[0], where=changed)
+        if self.changed_right is not None:
+            np.copyto(self.reference[1], self.blurred[1], where=self.changed_right)
+
+
+class _TemporalState:
+    """The filtered map and each pixel's weight (frames of agreeing evidence), with the change gate."""
+
+    def __init__(self, grey_l: np.ndarray, grey_r: np.ndarray, disparity: np.ndarray,
+                 confidence: np.ndarray | None = None) -> None:
+        self.gate = _ChangeGate(grey_l, grey_r)
+        self.disparity = disparity  # (H, W) float32, +inf invalid
+        self.weight = np.where(np.isfinite(disparity), np.float32(1), np.float32(0)).astype(np.float32)
+        self.confidence = confidence
+        self.last: dict[str, Any] = {}
+
+    def update(self, target: tuple[slice, slice], measured: np.ndarray, reset: np.ndarray, trust: np.ndarray,
+               confidence: np.ndarray | None) -> None:
+        """Take the new measurements ``measured`` of the pixels ``target``: ``reset`` ones as they
+        are, the others (where ``trust``) through the running mean (the module docstring's rule)."""
+        old = self.disparity[target]
+        weight = self.weight[target]
+        finite = np.isfinite(measured)
+        known = np.isfinite(old)
+        close = np.abs(measured - np.where(known, old, 0)) <= AGREE_PX
+        still = trust & ~reset & finite & known
+        agree = still & close
+        disagree = still & ~close
+        weight = np.where(agree, np.minimum(weight + 1, MAX_WEIGHT), np.where(disagree, weight - 1, weight))
+        mean = np.where(agree, old + (measured - np.where(known, old, 0)) / np.maximum(weight, 1), old)
+        take = reset | (trust & finite & ~known) | (disagree & (weight <= 0))
+        self.disparity[target] = np.where(take, measured, mean)
+        self.weight[target] = np.where(take, np.where(finite, 1, 0), weight).astype(np.float32)
+        if self.confidence is not None and confidence is not None:
+            self.confidence[target] = np.where(take | agree, confidence, self.confidence[target])
