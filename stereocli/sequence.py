@@ -65,7 +65,7 @@ __all__ = ["TEMPORAL_MODES", "SequenceMatcher", "match_sequence"]
 TEMPORAL_MODES = ("on", "off")
 
 #: Still rows are matched again one band in this many per frame (``refresh_bands=``).
-REFRESH_BANDS = 4
+REFRESH_BANDS = 6
 #: A pixel has changed where its blurred difference exceeds this many standard deviations of the
 #: blurred noise (one false alarm in about 10^5 pixels, before the speck filter drops them).
 GATE_SIGMAS = 4.5
@@ -79,6 +79,8 @@ PASTE_MARGIN = 6
 NARROW_MARGIN = 3
 #: A measurement within this many px of the filtered value agrees with it.
 AGREE_PX = 1.0
+#: A changed pixel's new value within this many px of the old one is averaged with it.
+RESTART_PX = 0.5
 #: Most frames of evidence a still pixel's running mean holds.
 MAX_WEIGHT = 8
 #: Share of a frame's pixels at an end of an estimated range that refreshes the survey.
@@ -106,7 +108,7 @@ class SequenceMatcher:
         :func:`stereocli.match`'s with the sequence's range.
     name : str, optional
         The sequence's name, put before error messages and warnings.
-    refresh_bands : int, default 4
+    refresh_bands : int, default 6
         ``temporal="on"``: still rows are matched again one band in ``refresh_bands`` per frame.
 
     Examples
@@ -152,6 +154,7 @@ class SequenceMatcher:
         self._alignment: dict | None = None
         self._shape: tuple[int, int] | None = None
         self._surveyed = False
+        self._reads_colour = _reads_colour(self.config)
         self._ends_at_survey = 0.0  # share of pixels at the range's ends on the surveyed frame
 
     # ------------------------------------------------------------------ public
@@ -301,7 +304,7 @@ class SequenceMatcher:
         assert isinstance(min_disp, int) and isinstance(ndisp, int)
         t0 = time.perf_counter()
         grey_l, grey_r = _grey(left), _grey(right)
-        changed = state.gate.changed(grey_l, grey_r, state.disparity)
+        moved, changed = state.gate.changed(grey_l, grey_r, state.disparity)
         h, w = changed.shape
         regions = _changed_regions(changed, min_disp, ndisp)
         if sum(r.area for r in regions) > WHOLE_FRAME_SHARE * h * w:
@@ -315,6 +318,8 @@ class SequenceMatcher:
         timings: dict[str, float] = {}
         memory = 0.0
         warnings: list[str] = []
+        if not self._reads_colour:  # the pipeline would take the same luma of each view again
+            left, right = grey_l, grey_r
         try:
             prepared = prepare(left, right, config, min_disp=min_disp, ndisp=ndisp, left_valid=self._masks[0],
                                right_valid=self._masks[1], keep_invalid=self._flags["keep_invalid"],
@@ -350,12 +355,15 @@ class SequenceMatcher:
                 reset = np.zeros(measured.shape, bool)
             else:
                 trust = np.ones(measured.shape, bool)
-                reset = changed[target]
-            state.update(target, measured, reset, trust,
+                reset = moved[target]
+            hold = changed[target] & ~moved[target]
+            if hold.any():  # kept only where the old value's match is now behind a nearer surface
+                hold &= _hidden(part.disparity, state.disparity[target], inner)
+            state.update(target, measured, reset, trust, hold,
                          None if part.confidence is None else part.confidence[inner])
             rematched[target] = True
-        state.gate.accept(changed)
-        state.last = {"rematched": round(float(rematched.mean()), 4), "changed": round(float(changed.mean()), 4),
+        state.gate.accept(moved)
+        state.last = {"rematched": round(float(rematched.mean()), 4), "changed": round(float(moved.mean()), 4),
                       "regions": len(regions)}
         seconds = time.perf_counter() - t0
         return MatchResult(disparity=state.disparity.copy(),
@@ -417,6 +425,14 @@ def _grey(image: np.ndarray) -> np.ndarray:
     return to_float_image(image)
 
 
+def _reads_colour(config: PipelineConfig) -> bool:
+    """Whether a stage of ``config`` reads a view's colour (else the pipeline matches the views' luma)."""
+    from .matching.pipeline import _reads_colour as reads_colour
+
+    calls = [*config.preprocess, config.cost, *config.aggregation, config.optimizer, *config.refinement]
+    return reads_colour(calls, "left") or reads_colour(calls, "right")
+
+
 def _blur(grey: np.ndarray) -> np.ndarray:
     import cv2
 
@@ -469,6 +485,27 @@ def _changed_regions(changed: np.ndarray, min_disp: int, ndisp: int) -> list[_Re
     return regions
 
 
+def _hidden(disparity: np.ndarray, old: np.ndarray, inner: tuple[slice, slice]) -> np.ndarray:
+    """Which pixels ``inner`` of a crop (``old``: their previous values, px) have their previous
+    match in the right view hidden behind a nearer surface of the crop's new map ``disparity``
+    ((h, w) float32 px): the nearest disparity landing on that right-view pixel exceeds the old
+    value by more than :data:`AGREE_PX`."""
+    h, w = disparity.shape
+    rows = np.arange(h)[:, None]
+    finite = np.isfinite(disparity)
+    landing = np.rint(np.arange(w, dtype=np.float32)[None, :] - np.where(finite, disparity, 0)).astype(np.intp)
+    keep = finite & (landing >= 0) & (landing < w)
+    nearest = np.full(h * w, -np.inf, np.float32)
+    np.maximum.at(nearest, (rows * w + landing)[keep], disparity[keep])
+    ys = rows[inner[0]]
+    xs = np.arange(w)[inner[1]][None, :]
+    known = np.isfinite(old)
+    target = np.rint(xs - np.where(known, old, 0)).astype(np.intp)
+    inside = known & (target >= 0) & (target < w)
+    found = nearest[(ys * w + np.clip(target, 0, w - 1)).ravel()].reshape(old.shape)
+    return inside & (found > old + AGREE_PX)
+
+
 class _ChangeGate:
     """Which pixels changed since their value was last measured (the module docstring's rule)."""
 
@@ -495,9 +532,12 @@ class _ChangeGate:
         by_kernel = float(np.median(np.abs(response[1:-1, 1:-1]))) / (0.6745 * 6.0 * np.sqrt(2.0))
         return max(min(by_median, by_kernel), MIN_SIGMA)
 
-    def changed(self, grey_l: np.ndarray, grey_r: np.ndarray, disparity: np.ndarray) -> np.ndarray:
-        """(H, W) bool in left coordinates: the pixels whose left view changed, or whose match in
-        the right view (at ``x - disparity``) did, grown by :data:`RESET_RADIUS` px."""
+    def changed(self, grey_l: np.ndarray, grey_r: np.ndarray,
+                disparity: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(moved, changed)``, (H, W) bool in left coordinates, grown by :data:`RESET_RADIUS` px:
+        the pixels whose left view changed (something else is there now), and those or the
+        pixels whose match in the right view (at ``x - disparity``) changed (the same surface,
+        matched again: it may be hidden in the right view now, or seen again)."""
         import cv2
 
         if self.estimates < NOISE_FRAMES or self.estimates % NOISE_FRAMES == 0:
@@ -518,10 +558,13 @@ class _ChangeGate:
         if right.any():
             columns = np.arange(w, dtype=np.float32)[None, :] - np.where(np.isfinite(disparity), disparity, 0)
             index = np.clip(np.rint(columns), 0, w - 1).astype(np.intp)
-            left |= np.take_along_axis(right, index, axis=1)
         grow = np.ones((2 * RESET_RADIUS + 1, 2 * RESET_RADIUS + 1), np.uint8)
         self.changed_right = cv2.dilate(right, grow).astype(bool)
-        return cv2.dilate(left, grow).astype(bool)
+        moved = cv2.dilate(left, grow).astype(bool)
+        if right.any():
+            matched = np.take_along_axis(right, index, axis=1)
+            return moved, cv2.dilate(left | matched, grow).astype(bool)
+        return moved, moved
 
     def accept(self, changed: np.ndarray) -> None:
         """The changed pixels' values were measured on this frame's views: they are the new reference."""
@@ -542,9 +585,11 @@ class _TemporalState:
         self.last: dict[str, Any] = {}
 
     def update(self, target: tuple[slice, slice], measured: np.ndarray, reset: np.ndarray, trust: np.ndarray,
-               confidence: np.ndarray | None) -> None:
+               hold: np.ndarray, confidence: np.ndarray | None) -> None:
         """Take the new measurements ``measured`` of the pixels ``target``: ``reset`` ones as they
-        are, the others (where ``trust``) through the running mean (the module docstring's rule)."""
+        are, the others (where ``trust``) through the running mean (the module docstring's rule);
+        a ``hold`` pixel (its match in the right view changed, not its view) keeps its value
+        when the new one disagrees."""
         old = self.disparity[target]
         weight = self.weight[target]
         finite = np.isfinite(measured)
@@ -552,10 +597,15 @@ class _TemporalState:
         close = np.abs(measured - np.where(known, old, 0)) <= AGREE_PX
         still = trust & ~reset & finite & known
         agree = still & close
-        disagree = still & ~close
+        disagree = still & ~close & ~hold
         weight = np.where(agree, np.minimum(weight + 1, MAX_WEIGHT), np.where(disagree, weight - 1, weight))
         mean = np.where(agree, old + (measured - np.where(known, old, 0)) / np.maximum(weight, 1), old)
-        take = reset | (trust & finite & ~known) | (disagree & (weight <= 0))
+        # A changed pixel whose new value stays within half a pixel of the old one (the same
+        # surface, or one moving less than that in depth) starts over from the mean of both.
+        again = reset & finite & known & (np.abs(measured - np.where(known, old, 0)) <= RESTART_PX)
+        mean = np.where(again, 0.5 * (old + np.where(finite, measured, 0)), mean)
+        weight = np.where(again, 2, weight)
+        take = (reset & ~again) | (trust & finite & ~known) | (disagree & (weight <= 0))
         self.disparity[target] = np.where(take, measured, mean)
         self.weight[target] = np.where(take, np.where(finite, 1, 0), weight).astype(np.float32)
         if self.confidence is not None and confidence is not None:
