@@ -306,10 +306,7 @@ class SequenceMatcher:
         grey_l, grey_r = _grey(left), _grey(right)
         moved, changed = state.gate.changed(grey_l, grey_r, state.disparity)
         h, w = changed.shape
-        # The pixels that changed on the frame before are matched once more: a match the change
-        # hid then (an occlusion's fill) is measured again now that it may be seen.
-        regions = _changed_regions(changed | state.pending, min_disp, ndisp)
-        state.pending = changed
+        regions = _changed_regions(changed, min_disp, ndisp)
         if sum(r.area for r in regions) > WHOLE_FRAME_SHARE * h * w:
             regions = [_Region(slice(0, h), slice(0, w), slice(0, h), slice(0, w), min_disp, ndisp, False)]
         else:
@@ -586,7 +583,6 @@ class _TemporalState:
         self.weight = np.where(np.isfinite(disparity), np.float32(1), np.float32(0)).astype(np.float32)
         self.confidence = confidence
         self.last: dict[str, Any] = {}
-        self.pending = np.zeros(disparity.shape, bool)  # changed on the frame before
 
     def update(self, target: tuple[slice, slice], measured: np.ndarray, reset: np.ndarray, trust: np.ndarray,
                hold: np.ndarray, confidence: np.ndarray | None) -> None:
