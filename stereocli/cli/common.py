@@ -23,13 +23,15 @@ def unpaired_failures(problems: list[str]) -> list[ItemResult]:
 
 def run_batch_command(command: str, items: list[WorkItem], item_fn: Callable[[WorkItem], dict], *,
                       outdir: Path | None, config: dict | None, verbosity: int,
-                      extra_failures: Sequence[ItemResult] = (), **batch_options) -> tuple[int, BatchResult]:
+                      extra_failures: Sequence[ItemResult] = (), record_extra: Callable[[], dict] | None = None,
+                      **batch_options) -> tuple[int, BatchResult]:
     """Run a batch subcommand's items and report: hold ``outdir``'s lock (one run per output
     folder), start the run record, :func:`~stereocli.jobs.executors.run_batch` with
     ``batch_options``, then :func:`finish_batch` into ``outdir/run.json``.
     With ``outdir`` None (a single output file) there is no lock and no run record. Returns the
     exit code and the batch's results. With ``skip_existing``, items whose earlier outputs are
-    stale are redone and said so (:func:`~stereocli.jobs.items.stale_reason`)."""
+    stale are redone and said so (:func:`~stereocli.jobs.items.stale_reason`). ``record_extra()``
+    gives more top-level entries for the run record, asked for once the items have run."""
     from ..jobs.executors import run_batch
     from ..jobs.lock import output_lock
     from ..process import deferred_interrupts
@@ -41,6 +43,8 @@ def run_batch_command(command: str, items: list[WorkItem], item_fn: Callable[[Wo
             redone = {item.name: reason for item in items if (reason := stale_reason(item))}
         result = run_batch(items, item_fn, desc=command, verbose_errors=verbosity >= 2, **batch_options)
         with deferred_interrupts():  # a signal now waits until run.json is written
+            if record_extra is not None:
+                record.data.update(record_extra())
             code = finish_batch(result, record, None if outdir is None else Path(outdir) / "run.json", verbosity,
                                 extra_failures, redone)
     return code, result

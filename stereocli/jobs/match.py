@@ -124,18 +124,7 @@ def plan_items(
         except StereoError as exc:  # this pair's failure (a bad calib.txt), not the batch's
             error, (lo, nd, info) = exc, (None, None, {"range_source": None})
         folder = outdir / pair.name
-        outputs = {"disparity": str(folder / "disp0.pfm"), "time": str(folder / "time.txt"),
-                   "params": str(folder / "params.json")}
-        if png16_scale:
-            outputs["png16"] = str(folder / "disp0.png")
-        if npy:
-            outputs["npy"] = str(folder / "disp0.npy")
-        if viz:
-            outputs["viz"] = str(folder / "disp0_viz.png")
-        if confidence:
-            outputs["confidence"] = str(folder / "conf0.pfm")
-        if right:
-            outputs["right"] = str(folder / "disp1.pfm")
+        outputs = match_outputs(folder, png16_scale=png16_scale, npy=npy, viz=viz, confidence=confidence, right=right)
         inputs = {"left": pair.left, "right": pair.right}
         for key in ("calib", "left_valid", "right_valid"):
             if getattr(pair, key):
@@ -149,14 +138,32 @@ def plan_items(
         if split_strips:
             options["split_strips"] = True
         items.append(WorkItem(pair.name, inputs, outputs, options, folder=str(folder), command="match",
-                              config_digest=settings_digest(_output_settings(options))))
+                              config_digest=settings_digest(output_settings(options))))
         if error is not None:
             items[-1].error, items[-1].error_code = label_message(pair.name, str(error)), error.exit_code
     check_output_paths(items, outdir)
     return items
 
 
-def _output_settings(options: dict) -> dict:
+def match_outputs(folder: Path, *, png16_scale: float | None = None, npy: bool = False, viz: bool = False,
+                  confidence: bool = False, right: bool = False) -> dict[str, str]:
+    """The output paths of one matched pair in ``folder``, by kind (the module's docstring)."""
+    outputs = {"disparity": str(folder / "disp0.pfm"), "time": str(folder / "time.txt"),
+               "params": str(folder / "params.json")}
+    if png16_scale:
+        outputs["png16"] = str(folder / "disp0.png")
+    if npy:
+        outputs["npy"] = str(folder / "disp0.npy")
+    if viz:
+        outputs["viz"] = str(folder / "disp0_viz.png")
+    if confidence:
+        outputs["confidence"] = str(folder / "conf0.pfm")
+    if right:
+        outputs["right"] = str(folder / "disp1.pfm")
+    return outputs
+
+
+def output_settings(options: dict) -> dict:
     """The options of a match item that change its outputs: not the run record's extras, the
     kernel threads, nor ``split_strips`` (strips on the cluster stitch to the same bytes)."""
     settings = {k: v for k, v in options.items() if k not in ("record", "split_strips")}
@@ -293,8 +300,6 @@ def match_item(item: WorkItem) -> dict:
     """
     from ..api import match
     from ..io.exif import orientation_note
-    from ..io.images import write_disparity, write_image
-    from ..io.pfm import write_pfm
 
     opts = item.options
     config = _config(opts["config"])
@@ -313,6 +318,24 @@ def match_item(item: WorkItem) -> dict:
                    left_valid=left_valid, right_valid=right_valid, disparity_right="right" in item.outputs,
                    confidence="confidence" in item.outputs, keep_invalid=opts["keep_invalid"],
                    require_aligned=opts["require_aligned"], warm_up=True, strip_map=strip_map)
+    notes = [orientation_note(item.inputs["left"]), orientation_note(item.inputs["right"]), opts.get("range_note")]
+    return write_match_outputs(item, result, load_seconds=load_seconds, memory=memory, notes=notes)
+
+
+def write_match_outputs(item: WorkItem, result, *, load_seconds: float, memory: MemoryPlan | None = None,
+                        notes: list[str | None] | tuple = (), extra: dict | None = None) -> dict:
+    """Write the outputs of ``item`` from ``result`` (a :class:`~stereocli.api.MatchResult`) to
+    ``item.outputs``: the disparity and the files its options ask for, then ``params.json`` and
+    ``time.txt``; returns the details for the run record.
+
+    ``load_seconds``: time spent decoding the views; ``memory``: the item's plan, when made;
+    ``notes``: warnings about the inputs put before the match's own (None entries are left out);
+    ``extra``: more entries for the details and ``params.json``.
+    """
+    from ..io.images import write_disparity, write_image
+    from ..io.pfm import write_pfm
+
+    opts = item.options
     seconds = result.seconds
     min_disp, ndisp = result.range.min_disp, result.range.ndisp
     # The plan knows where a given range came from (--ndisp or calib.txt).
@@ -339,7 +362,6 @@ def match_item(item: WorkItem) -> dict:
         if result.disparity_right is None:  # (never: asked for, the right-view map is always made)
             raise RuntimeError(f"{item.name}: the match made no right-view map")
         write_pfm(out["right"], result.disparity_right)
-    notes = [orientation_note(item.inputs["left"]), orientation_note(item.inputs["right"]), opts.get("range_note")]
     survey["warnings"] = [n for n in notes if n] + survey["warnings"]
     h, w = result.disparity.shape
     finite = np.isfinite(result.disparity)
@@ -356,6 +378,7 @@ def match_item(item: WorkItem) -> dict:
     }
     if result.notes:
         details["stage_notes"] = result.notes
+    details.update(extra or {})
     if png16_lost:
         details["png16_unrepresentable"] = png16_lost
         details["warnings"] = [*details.get("warnings", []),
