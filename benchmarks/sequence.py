@@ -7,8 +7,9 @@ sigma = 3 grey levels, ground truth per frame:
 * ``still`` — the synthetic ``planes`` scene holding still;
 * ``moving`` — the same scene with a textured disc moving in front of it;
 * ``pan`` — the scene panning 1 px per frame;
-* ``<Scene>+disc`` — with ``../shared/data`` present, a Middlebury 2014 (Q) scene with the moving
-  disc pasted over it (nearer than the whole scene, so its occlusion is exact).
+* ``<Scene>+disc`` — with ``../shared/data`` present, a real scene with the moving disc pasted over
+  it (nearer than the whole scene, so its occlusion is exact): the Middlebury 2014 (Q) scenes
+  :data:`SHARED_SCENES` and the Middlebury 2005 (third size) validation scene :data:`VALIDATION_SCENES`.
 
 Each sequence is matched by :class:`stereocli.sequence.SequenceMatcher` with the default preset
 and the range the first frame's survey estimates, ``temporal="on"`` and ``"off"`` taking turns for
@@ -20,7 +21,8 @@ and the range the first frame's survey estimates, ``temporal="on"`` and ``"off"`
   invalid), over the whole image and on the moving object, averaged over the frames;
 * fps: frames per second of the whole sequence (the first frame's survey included).
 
-    python benchmarks/sequence.py [--frames 30] [--width 640 --height 480] [--repeat 2] [--json FILE]
+    python benchmarks/sequence.py [--frames 30] [--width 640 --height 480] [--repeat 2] [--refresh-every 3]
+                                  [--only NAME ...] [--json FILE]
 """
 
 from __future__ import annotations
@@ -40,8 +42,10 @@ from stereocli.sequence import SequenceMatcher  # noqa: E402
 from stereocli.synth.sequences import SyntheticSequence, make_sequence, sequence_from_pair  # noqa: E402
 
 DEFAULT_DATA = REPO.parent / "shared" / "data"
-#: The Middlebury scene the shared-data row pastes the moving disc over.
-SHARED_SCENE = "Adirondack"
+#: The Middlebury 2014 (trainingQ) scenes the shared-data rows paste the moving disc over.
+SHARED_SCENES = ("Adirondack", "Motorcycle", "Piano", "Playtable")
+#: Middlebury 2005 (third size) scenes, a held-out check: the reuse was not tuned on them.
+VALIDATION_SCENES = ("Books",)
 
 
 def flicker(maps: list[np.ndarray], seq: SyntheticSequence) -> float:
@@ -72,21 +76,23 @@ def bad1(maps: list[np.ndarray], seq: SyntheticSequence, on_object: bool = False
     return float(np.mean(shares)) if shares else float("nan")
 
 
-def run(seq: SyntheticSequence, temporal: str) -> tuple[list[np.ndarray], float, SequenceMatcher]:
-    """The sequence's maps, its seconds and the matcher (the range estimated on the first frame)."""
-    matcher = SequenceMatcher(temporal=temporal)
+def run(seq: SyntheticSequence, temporal: str, **options) -> tuple[list[np.ndarray], float, SequenceMatcher]:
+    """The sequence's maps, its seconds and the matcher (the range estimated on the first frame;
+    ``options`` are :class:`SequenceMatcher`'s)."""
+    matcher = SequenceMatcher(temporal=temporal, **options)
     t0 = time.perf_counter()
     maps = [matcher.push(left, right).disparity for left, right in seq.pairs()]
     return maps, time.perf_counter() - t0, matcher
 
 
-def measure(name: str, seq: SyntheticSequence, repeat: int) -> dict:
-    """Both modes on one sequence, taking turns ``repeat`` times (best time kept)."""
+def measure(name: str, seq: SyntheticSequence, repeat: int, **options) -> dict:
+    """Both modes on one sequence, taking turns ``repeat`` times (best time kept); ``options``
+    are ``temporal="on"``'s :class:`SequenceMatcher` options."""
     row: dict = {"sequence": name, "frames": len(seq), "size": f"{seq.left[0].shape[1]}x{seq.left[0].shape[0]}"}
     best = {"off": np.inf, "on": np.inf}
     for _ in range(repeat):
         for temporal in ("off", "on"):
-            maps, seconds, matcher = run(seq, temporal)
+            maps, seconds, matcher = run(seq, temporal, **(options if temporal == "on" else {}))
             best[temporal] = min(best[temporal], seconds)
             row[temporal] = {"flicker": flicker(maps, seq), "bad1": bad1(maps, seq),
                              "bad1_object": bad1(maps, seq, on_object=True), "record": matcher.record()}
@@ -95,17 +101,28 @@ def measure(name: str, seq: SyntheticSequence, repeat: int) -> dict:
     return row
 
 
-def shared_sequence(data: Path, frames: int, seed: int) -> SyntheticSequence | None:
-    """The moving disc over the shared Middlebury scene, or None without the data."""
-    folder = data / "middlebury2014" / "trainingQ" / SHARED_SCENE
-    if not folder.is_dir():
-        return None
+def shared_sequence(data: Path, scene: str, frames: int, seed: int) -> SyntheticSequence | None:
+    """The moving disc over a shared Middlebury 2014 (Q) or 2005 scene, or None without the data."""
     from stereocli.api import read_image
-    from stereocli.io.pfm import read_pfm
 
-    gt = read_pfm(folder / "disp0GT.pfm")
-    return sequence_from_pair(read_image(folder / "im0.png"), read_image(folder / "im1.png"),
-                              np.ascontiguousarray(gt, dtype=np.float32), frames=frames, seed=seed)
+    folder = data / "middlebury2014" / "trainingQ" / scene
+    if folder.is_dir():
+        from stereocli.io.pfm import read_pfm
+
+        gt = np.asarray(read_pfm(folder / "disp0GT.pfm"), np.float32)
+        left, right = read_image(folder / "im0.png"), read_image(folder / "im1.png")
+    else:
+        folder = data / "middlebury2005" / scene
+        if not folder.is_dir():
+            return None
+        from stereocli.evaluation.datasets import mb2005_divisor
+
+        left, right = read_image(folder / "view1.png"), read_image(folder / "view5.png")
+        raw = np.asarray(read_image(folder / "disp1.png"), np.float32)
+        raw = raw[..., 0] if raw.ndim == 3 else raw
+        divisor = mb2005_divisor(folder, raw.shape[1])[1]
+        gt = np.where(raw > 0, raw / divisor, np.inf).astype(np.float32)
+    return sequence_from_pair(left, right, np.ascontiguousarray(gt), frames=frames, seed=seed)
 
 
 def table(rows: list[dict]) -> str:
@@ -130,6 +147,8 @@ def main() -> int:
     parser.add_argument("--height", type=int, default=480)
     parser.add_argument("--noise", type=float, default=3.0)
     parser.add_argument("--repeat", type=int, default=2)
+    parser.add_argument("--refresh-every", type=int, default=None,
+                        help="SequenceMatcher's refresh_every for temporal on (default: its own)")
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA)
     parser.add_argument("--only", nargs="*", help="sequence names to run (default: all)")
     parser.add_argument("--json", type=Path)
@@ -139,9 +158,10 @@ def main() -> int:
         if not args.only or kind in args.only:
             sequences[kind] = lambda kind=kind: make_sequence(kind, frames=args.frames, width=args.width,
                                                               height=args.height, noise=args.noise)
-    shared_name = f"{SHARED_SCENE}+disc"
-    if not args.only or shared_name in args.only:
-        sequences[shared_name] = lambda: shared_sequence(args.data, args.frames, 0)
+    for scene in (*SHARED_SCENES, *VALIDATION_SCENES):
+        if not args.only or f"{scene}+disc" in args.only:
+            sequences[f"{scene}+disc"] = lambda scene=scene: shared_sequence(args.data, scene, args.frames, 0)
+    options = {} if args.refresh_every is None else {"refresh_every": args.refresh_every}
     # Compile the kernels first, so the first sequence's time is not its compilation.
     warm = make_sequence("moving", frames=3, width=160, height=120)
     for temporal in ("off", "on"):
@@ -152,7 +172,7 @@ def main() -> int:
         if seq is None:
             print(f"({name}: no shared data at {args.data}; skipped)")
             continue
-        rows.append(measure(name, seq, args.repeat))
+        rows.append(measure(name, seq, args.repeat, **options))
         print(table(rows[-1:]).splitlines()[-1], flush=True)
     print()
     print(table(rows))

@@ -31,11 +31,12 @@ The reuse rule (``temporal="on"``; ``docs/design.md`` states it for users):
   changed rows is cut out with :data:`CONTEXT` px of context (and the range's width to the left,
   so every match stays inside the cut) and matched with the sequence's config; the changed
   pixels take the new values as they are (the filter restarts there).
-* **Where the scene holds still** the previous value stands, and one band of rows in
-  ``refresh_bands`` is matched again each frame (all rows every ``refresh_bands`` frames) over a
-  range narrowed to the band's previous disparities (1st to 99th percentile, +-
-  :data:`NARROW_MARGIN` px), falling back to the previous value where the narrowed result is not
-  confident (at an end of the narrowed range).
+* **Where the scene holds still** the previous value stands, and every ``refresh_every``-th frame
+  is matched whole (with the sequence's config: the same search, coarse to fine or not, as a
+  frame matched on its own), its still pixels' values going through the filter. A crop is
+  matched with the search the whole frame would use (:func:`~stereocli.matching.config.small_twin`):
+  a crop's smaller cost volume would otherwise turn the coarse-to-fine search off, and the
+  full-range search on its own gives worse values on real scenes.
 * **Temporal filter.** A still pixel's value is the running mean of its measurements that agree
   with it within :data:`AGREE_PX` (at most :data:`MAX_WEIGHT` frames' worth, so a slow drift
   still comes through); a measurement that disagrees lowers the pixel's weight, and at weight 0
@@ -64,8 +65,8 @@ __all__ = ["TEMPORAL_MODES", "SequenceMatcher", "match_sequence"]
 #: Values of ``temporal=``.
 TEMPORAL_MODES = ("on", "off")
 
-#: Still rows are matched again one band in this many per frame (``refresh_bands=``).
-REFRESH_BANDS = 6
+#: Every this-many-th frame is matched whole (``refresh_every=``): the still pixels' new evidence.
+REFRESH_EVERY = 3
 #: A pixel has changed where its blurred difference exceeds this many standard deviations of the
 #: blurred noise (one false alarm in about 10^5 pixels, before the speck filter drops them).
 GATE_SIGMAS = 4.5
@@ -75,8 +76,6 @@ RESET_RADIUS = 4
 CONTEXT = 16
 #: px around the changed pixels whose new values go through the filter.
 PASTE_MARGIN = 6
-#: px beyond the band's previous disparities a narrowed refresh searches, each side.
-NARROW_MARGIN = 3
 #: A measurement within this many px of the filtered value agrees with it.
 AGREE_PX = 1.0
 #: A changed pixel's new value within this many px of the old one is averaged with it.
@@ -103,13 +102,14 @@ class SequenceMatcher:
     ndisp, min_disp, preset, config, set, threads, calib, left_valid, right_valid, confidence, keep_invalid :
         As for :func:`stereocli.match`; they hold for every frame.
     temporal : {"on", "off"}, default "on"
-        ``"on"`` reuses the previous frames (narrowed search, temporal filter); ``"off"``
+        ``"on"`` reuses the previous frames (still pixels kept, temporal filter); ``"off"``
         matches each frame on its own (the survey is still reused): each frame's map is
         :func:`stereocli.match`'s with the sequence's range.
     name : str, optional
         The sequence's name, put before error messages and warnings.
-    refresh_bands : int, default 6
-        ``temporal="on"``: still rows are matched again one band in ``refresh_bands`` per frame.
+    refresh_every : int, default 3
+        ``temporal="on"``: every ``refresh_every``-th frame is matched whole (1: every frame);
+        the frames between match only the regions that changed.
 
     Examples
     --------
@@ -129,17 +129,18 @@ class SequenceMatcher:
                  config: ConfigLike = None, set: Assignments = None, threads: int | None = None,
                  calib: PathLike | MiddleburyCalib | None = None, left_valid: np.ndarray | None = None,
                  right_valid: np.ndarray | None = None, confidence: bool = False, keep_invalid: bool = False,
-                 temporal: str = "on", name: str = "", refresh_bands: int = REFRESH_BANDS) -> None:
+                 temporal: str = "on", name: str = "", refresh_every: int = REFRESH_EVERY) -> None:
         from .api import match_config
 
         if temporal not in TEMPORAL_MODES:
             raise ConfigError(f"temporal must be one of {', '.join(TEMPORAL_MODES)}, got {temporal!r}")
-        if isinstance(refresh_bands, bool) or not isinstance(refresh_bands, (int, np.integer)) or refresh_bands < 1:
-            raise ConfigError(f"refresh_bands must be a whole number >= 1, got {refresh_bands!r}")
+        if isinstance(refresh_every, bool) or not isinstance(refresh_every, (int, np.integer)) or refresh_every < 1:
+            raise ConfigError(f"refresh_every must be a whole number >= 1, got {refresh_every!r}")
         self.config = match_config(preset, config, set, threads)
         self.temporal = temporal
         self.name = name
-        self.refresh_bands = int(refresh_bands)
+        self.refresh_every = int(refresh_every)
+        self._since_whole = 0  # frames matched since the last whole-frame match
         self._range: tuple[int | None, int | str | None] = (min_disp, ndisp)
         self._source: str | None = None  # the range's source once known
         self._calib = calib
@@ -233,6 +234,7 @@ class SequenceMatcher:
         self._repeat = self._repeating_config({"row_align": row_align} if row_align is not None else None)
         if self.temporal == "on":
             self._state = _TemporalState(_grey(left), _grey(right), disparity.copy())
+            self._since_whole = 0
 
     # ------------------------------------------------------------------ whole frames
 
@@ -287,15 +289,17 @@ class SequenceMatcher:
 
     def _restart(self, left: np.ndarray, right: np.ndarray, result: MatchResult) -> None:
         """Start the temporal state over from a whole frame's ``result``."""
+        self._since_whole = 0
         self._state = _TemporalState(_grey(left), _grey(right), result.disparity.copy(),
                                      None if result.confidence is None else result.confidence.copy())
 
     # ------------------------------------------------------------------ reuse
 
     def _match_reusing(self, left: np.ndarray, right: np.ndarray) -> MatchResult:
-        """A later frame with ``temporal="on"``: changed regions over the full range, one band of
-        still rows over a narrowed range, the temporal filter over what was matched."""
+        """A later frame with ``temporal="on"``: the changed regions (or, every ``refresh_every``-th
+        frame, the whole frame) over the full range, the temporal filter over what was matched."""
         from .api import MatchRange, MatchResult
+        from .matching.config import small_twin
         from .matching.pipeline import match_pair, prepare, release_config
 
         state = self._state
@@ -306,15 +310,16 @@ class SequenceMatcher:
         grey_l, grey_r = _grey(left), _grey(right)
         moved, changed = state.gate.changed(grey_l, grey_r, state.disparity)
         h, w = changed.shape
-        regions = _changed_regions(changed, min_disp, ndisp)
-        if sum(r.area for r in regions) > WHOLE_FRAME_SHARE * h * w:
-            regions = [_Region(slice(0, h), slice(0, w), slice(0, h), slice(0, w), min_disp, ndisp, False)]
+        whole = self._since_whole + 1 >= self.refresh_every
+        regions = [] if whole else _changed_regions(changed, min_disp, ndisp)
+        if whole or sum(r.area for r in regions) > WHOLE_FRAME_SHARE * h * w:
+            regions = [_Region(slice(0, h), slice(0, w), slice(0, h), slice(0, w))]
+            self._since_whole = 0
         else:
-            band = self._refresh_band(changed, h, w, min_disp, ndisp)
-            if band is not None:
-                regions.append(band)
+            self._since_whole += 1
         config = self._repeat or self.config
-        crop_config = replace(config, preprocess=[])
+        # A crop searches as the whole frame does (see the module docstring).
+        crop_config = small_twin(replace(config, preprocess=[]), h, w, ndisp)
         timings: dict[str, float] = {}
         memory = 0.0
         warnings: list[str] = []
@@ -333,10 +338,9 @@ class SequenceMatcher:
         rematched = np.zeros(changed.shape, bool)
         for region in regions:
             rows, cols = region.rows, region.cols
-            crop = lambda m: None if m is None else np.ascontiguousarray(m[rows, cols])  # noqa: E731
-            part = match_pair(crop(views.left), crop(views.right), crop_config, min_disp=region.min_disp,
-                              ndisp=region.ndisp, left_valid=crop(views.left_valid),
-                              right_valid=crop(views.right_valid), keep_invalid=self._flags["keep_invalid"],
+            part = match_pair(region.crop(views.left), region.crop(views.right), crop_config, min_disp=min_disp,
+                              ndisp=ndisp, left_valid=region.crop(views.left_valid),
+                              right_valid=region.crop(views.right_valid), keep_invalid=self._flags["keep_invalid"],
                               want_confidence=self._flags["confidence"])
             for key, seconds in part.timings.items():
                 timings[key] = timings.get(key, 0.0) + seconds
@@ -345,17 +349,8 @@ class SequenceMatcher:
                      slice(region.paste_cols.start - cols.start, region.paste_cols.stop - cols.start))
             measured = part.disparity[inner]
             target = (region.paste_rows, region.paste_cols)
-            if region.narrowed:
-                # At an end of the narrowed range the pixel may lie beyond it: not confident. The
-                # changed pixels, and those already matched again, have their own region.
-                lo, hi = region.min_disp, region.min_disp + region.ndisp - 1
-                beyond = ((measured <= lo + 0.5) & (lo > min_disp)) | ((measured >= hi - 0.5) &
-                                                                        (hi < min_disp + ndisp - 1))
-                trust = ~(beyond | changed[target] | rematched[target])
-                reset = np.zeros(measured.shape, bool)
-            else:
-                trust = np.ones(measured.shape, bool)
-                reset = moved[target]
+            trust = np.ones(measured.shape, bool)
+            reset = moved[target]
             hold = changed[target] & ~moved[target]
             if hold.any():  # kept only where the old value's match is now behind a nearer surface
                 hold &= _hidden(part.disparity, state.disparity[target], inner)
@@ -364,32 +359,13 @@ class SequenceMatcher:
             rematched[target] = True
         state.gate.accept(moved)
         state.last = {"rematched": round(float(rematched.mean()), 4), "changed": round(float(moved.mean()), 4),
-                      "regions": len(regions)}
+                      "regions": len(regions), "whole": self._since_whole == 0}
         seconds = time.perf_counter() - t0
         return MatchResult(disparity=state.disparity.copy(),
                            range=MatchRange(min_disp, ndisp, self._source or "given"),
                            confidence=None if state.confidence is None else state.confidence.copy(),
                            timings=timings, notes=dict(views.notes), alignment=self._alignment, warnings=warnings,
                            seconds=seconds, memory_estimate_gb=memory, config=self.config)
-
-    def _refresh_band(self, changed: np.ndarray, h: int, w: int, min_disp: int, ndisp: int) -> _Region | None:
-        """This frame's band of still rows to match again, over the range its previous values
-        narrow (None when the band is all changed)."""
-        state = self._state
-        assert state is not None
-        band = (self.frame - 1) % self.refresh_bands
-        y0, y1 = band * h // self.refresh_bands, (band + 1) * h // self.refresh_bands
-        if y1 <= y0:
-            return None
-        values = state.disparity[y0:y1:2, ::2]
-        still = np.isfinite(values) & ~changed[y0:y1:2, ::2]
-        if not still.any():
-            return None
-        low, high = np.percentile(values[still], [1.0, 99.0])
-        lo = max(min_disp, int(np.floor(low)) - NARROW_MARGIN)
-        hi = min(min_disp + ndisp - 1, int(np.ceil(high)) + NARROW_MARGIN)
-        rows = slice(max(0, y0 - CONTEXT), min(h, y1 + CONTEXT))
-        return _Region(rows, slice(0, w), slice(y0, y1), slice(0, w), lo, hi - lo + 1, True)
 
 
 def match_sequence(frames: Iterable[tuple[np.ndarray, np.ndarray]], **options: Any) -> Iterator[MatchResult]:
@@ -441,17 +417,17 @@ def _blur(grey: np.ndarray) -> np.ndarray:
 
 @dataclass
 class _Region:
-    """A region matched again: the crop (``rows``, ``cols``), the pixels whose new values count
-    (``paste_rows``, ``paste_cols``, inside the crop) and its range; ``narrowed`` for a refresh
-    band searched over its previous disparities only."""
+    """A region matched again: the crop (``rows``, ``cols``) and the pixels whose new values count
+    (``paste_rows``, ``paste_cols``, inside the crop)."""
 
     rows: slice
     cols: slice
     paste_rows: slice
     paste_cols: slice
-    min_disp: int
-    ndisp: int
-    narrowed: bool
+
+    def crop(self, image: np.ndarray | None) -> np.ndarray | None:
+        """``image``'s crop (contiguous), or None for None."""
+        return None if image is None else np.ascontiguousarray(image[self.rows, self.cols])
 
     @property
     def area(self) -> int:
@@ -480,8 +456,7 @@ def _changed_regions(changed: np.ndarray, min_disp: int, ndisp: int) -> list[_Re
             c0, c1 = 0, w
         regions.append(_Region(slice(max(0, y0 - CONTEXT), min(h, y1 + CONTEXT)), slice(c0, c1),
                                slice(max(0, y0 - PASTE_MARGIN), min(h, y1 + PASTE_MARGIN)),
-                               slice(max(c0, x0 - PASTE_MARGIN), min(c1, x1 + PASTE_MARGIN)), min_disp, ndisp,
-                               False))
+                               slice(max(c0, x0 - PASTE_MARGIN), min(c1, x1 + PASTE_MARGIN))))
     return regions
 
 
