@@ -349,13 +349,9 @@ class SequenceMatcher:
                      slice(region.paste_cols.start - cols.start, region.paste_cols.stop - cols.start))
             measured = part.disparity[inner]
             target = (region.paste_rows, region.paste_cols)
-            trust = np.ones(measured.shape, bool)
-            reset = moved[target]
-            hold = changed[target] & ~moved[target]
-            if hold.any():  # kept only where the old value's match is now behind a nearer surface
-                hold &= _hidden(part.disparity, state.disparity[target], inner)
-            state.update(target, measured, reset, trust, hold,
-                         None if part.confidence is None else part.confidence[inner])
+            # Pixels whose match in the right view changed (not their view) go through the filter:
+            # keeping their old value wherever that match is now hidden made real scenes worse.
+            state.update(target, measured, moved[target], None if part.confidence is None else part.confidence[inner])
             rematched[target] = True
         state.gate.accept(moved)
         state.last = {"rematched": round(float(rematched.mean()), 4), "changed": round(float(moved.mean()), 4),
@@ -460,27 +456,6 @@ def _changed_regions(changed: np.ndarray, min_disp: int, ndisp: int) -> list[_Re
     return regions
 
 
-def _hidden(disparity: np.ndarray, old: np.ndarray, inner: tuple[slice, slice]) -> np.ndarray:
-    """Which pixels ``inner`` of a crop (``old``: their previous values, px) have their previous
-    match in the right view hidden behind a nearer surface of the crop's new map ``disparity``
-    ((h, w) float32 px): the nearest disparity landing on that right-view pixel exceeds the old
-    value by more than :data:`AGREE_PX`."""
-    h, w = disparity.shape
-    rows = np.arange(h)[:, None]
-    finite = np.isfinite(disparity)
-    landing = np.rint(np.arange(w, dtype=np.float32)[None, :] - np.where(finite, disparity, 0)).astype(np.intp)
-    keep = finite & (landing >= 0) & (landing < w)
-    nearest = np.full(h * w, -np.inf, np.float32)
-    np.maximum.at(nearest, (rows * w + landing)[keep], disparity[keep])
-    ys = rows[inner[0]]
-    xs = np.arange(w)[inner[1]][None, :]
-    known = np.isfinite(old)
-    target = np.rint(xs - np.where(known, old, 0)).astype(np.intp)
-    inside = known & (target >= 0) & (target < w)
-    found = nearest[(ys * w + np.clip(target, 0, w - 1)).ravel()].reshape(old.shape)
-    return inside & (found > old + AGREE_PX)
-
-
 class _ChangeGate:
     """Which pixels changed since their value was last measured (the module docstring's rule)."""
 
@@ -559,20 +534,19 @@ class _TemporalState:
         self.confidence = confidence
         self.last: dict[str, Any] = {}
 
-    def update(self, target: tuple[slice, slice], measured: np.ndarray, reset: np.ndarray, trust: np.ndarray,
-               hold: np.ndarray, confidence: np.ndarray | None) -> None:
-        """Take the new measurements ``measured`` of the pixels ``target``: ``reset`` ones as they
-        are, the others (where ``trust``) through the running mean (the module docstring's rule);
-        a ``hold`` pixel (its match in the right view changed, not its view) keeps its value
-        when the new one disagrees."""
+    def update(self, target: tuple[slice, slice], measured: np.ndarray, reset: np.ndarray,
+               confidence: np.ndarray | None) -> None:
+        """Take the new measurements ``measured`` ((h, w) float32 px) of the pixels ``target``:
+        ``reset`` ones ((h, w) bool) as they are, the others through the running mean (the
+        module docstring's rule)."""
         old = self.disparity[target]
         weight = self.weight[target]
         finite = np.isfinite(measured)
         known = np.isfinite(old)
         close = np.abs(measured - np.where(known, old, 0)) <= AGREE_PX
-        still = trust & ~reset & finite & known
+        still = ~reset & finite & known
         agree = still & close
-        disagree = still & ~close & ~hold
+        disagree = still & ~close
         weight = np.where(agree, np.minimum(weight + 1, MAX_WEIGHT), np.where(disagree, weight - 1, weight))
         mean = np.where(agree, old + (measured - np.where(known, old, 0)) / np.maximum(weight, 1), old)
         # A changed pixel whose new value stays within half a pixel of the old one (the same
@@ -580,7 +554,7 @@ class _TemporalState:
         again = reset & finite & known & (np.abs(measured - np.where(known, old, 0)) <= RESTART_PX)
         mean = np.where(again, 0.5 * (old + np.where(finite, measured, 0)), mean)
         weight = np.where(again, 2, weight)
-        take = (reset & ~again) | (trust & finite & ~known) | (disagree & (weight <= 0))
+        take = (reset & ~again) | (finite & ~known) | (disagree & (weight <= 0))
         self.disparity[target] = np.where(take, measured, mean)
         self.weight[target] = np.where(take, np.where(finite, 1, 0), weight).astype(np.float32)
         if self.confidence is not None and confidence is not None:
