@@ -141,6 +141,7 @@ class SequenceMatcher:
         self.name = name
         self.refresh_every = int(refresh_every)
         self._since_whole = 0  # frames matched since the last whole-frame match
+        self._notes: dict = {}  # the pipeline's notes on the last frame whose views were prepared
         self._range: tuple[int | None, int | str | None] = (min_disp, ndisp)
         self._source: str | None = None  # the range's source once known
         self._calib = calib
@@ -290,6 +291,7 @@ class SequenceMatcher:
     def _restart(self, left: np.ndarray, right: np.ndarray, result: MatchResult) -> None:
         """Start the temporal state over from a whole frame's ``result``."""
         self._since_whole = 0
+        self._notes = dict(result.notes)
         self._state = _TemporalState(_grey(left), _grey(right), result.disparity.copy(),
                                      None if result.confidence is None else result.confidence.copy())
 
@@ -325,16 +327,19 @@ class SequenceMatcher:
         warnings: list[str] = []
         if not self._reads_colour:  # the pipeline would take the same luma of each view again
             left, right = grey_l, grey_r
-        try:
-            prepared = prepare(left, right, config, min_disp=min_disp, ndisp=ndisp, left_valid=self._masks[0],
-                               right_valid=self._masks[1], keep_invalid=self._flags["keep_invalid"],
-                               want_confidence=self._flags["confidence"])
-        finally:
-            release_config()
-        timings.update(prepared.timings)
-        views = prepared.state
-        if self._repeat is None:  # the rows were measured on this frame: repeat them from now on
-            self._repeat = self._repeating_config(views.notes)
+        notes = self._notes
+        if regions or self._repeat is None:  # else nothing changed: no view is needed
+            try:
+                prepared = prepare(left, right, config, min_disp=min_disp, ndisp=ndisp, left_valid=self._masks[0],
+                                   right_valid=self._masks[1], keep_invalid=self._flags["keep_invalid"],
+                                   want_confidence=self._flags["confidence"])
+            finally:
+                release_config()
+            timings.update(prepared.timings)
+            views = prepared.state
+            notes = self._notes = dict(views.notes)
+            if self._repeat is None:  # the rows were measured on this frame: repeat them from now on
+                self._repeat = self._repeating_config(views.notes)
         rematched = np.zeros(changed.shape, bool)
         for region in regions:
             rows, cols = region.rows, region.cols
@@ -360,7 +365,7 @@ class SequenceMatcher:
         return MatchResult(disparity=state.disparity.copy(),
                            range=MatchRange(min_disp, ndisp, self._source or "given"),
                            confidence=None if state.confidence is None else state.confidence.copy(),
-                           timings=timings, notes=dict(views.notes), alignment=self._alignment, warnings=warnings,
+                           timings=timings, notes=dict(notes), alignment=self._alignment, warnings=warnings,
                            seconds=seconds, memory_estimate_gb=memory, config=self.config)
 
 
@@ -504,17 +509,22 @@ class _ChangeGate:
             moved = (cv2.absdiff(now, before) > threshold).astype(np.uint8)
             masks.append(cv2.morphologyEx(moved, cv2.MORPH_OPEN, speck))
         left, right = masks
-        h, w = left.shape
-        if right.any():
-            columns = np.arange(w, dtype=np.float32)[None, :] - np.where(np.isfinite(disparity), disparity, 0)
-            index = np.clip(np.rint(columns), 0, w - 1).astype(np.intp)
         grow = np.ones((2 * RESET_RADIUS + 1, 2 * RESET_RADIUS + 1), np.uint8)
-        self.changed_right = cv2.dilate(right, grow).astype(bool)
-        moved = cv2.dilate(left, grow).astype(bool)
-        if right.any():
-            matched = np.take_along_axis(right, index, axis=1)
-            return moved, cv2.dilate(left | matched, grow).astype(bool)
-        return moved, moved
+        self.changed_right = cv2.dilate(right, grow).view(bool)
+        moved = cv2.dilate(left, grow).view(bool)
+        rows = np.flatnonzero(right.any(axis=1))
+        if rows.size == 0:
+            return moved, moved
+        # The right mask read at each left pixel's match (x - d; the pixel itself where d is
+        # unknown), on the rows with right-view changes only.
+        band = slice(int(rows[0]), int(rows[-1]) + 1)
+        values = disparity[band]
+        columns = np.arange(values.shape[1], dtype=np.float32)[None, :] - np.where(np.isfinite(values), values, 0)
+        rows_map = np.broadcast_to(np.arange(values.shape[0], dtype=np.float32)[:, None], values.shape)
+        matched = left.copy()
+        matched[band] |= cv2.remap(right[band], columns, np.ascontiguousarray(rows_map), cv2.INTER_NEAREST,
+                                   borderMode=cv2.BORDER_REPLICATE)
+        return moved, cv2.dilate(matched, grow).view(bool)
 
     def accept(self, changed: np.ndarray) -> None:
         """The changed pixels' values were measured on this frame's views: they are the new reference."""
@@ -539,23 +549,29 @@ class _TemporalState:
         """Take the new measurements ``measured`` ((h, w) float32 px) of the pixels ``target``:
         ``reset`` ones ((h, w) bool) as they are, the others through the running mean (the
         module docstring's rule)."""
+        # In place on views of the state (float32 throughout: this runs on whole frames).
         old = self.disparity[target]
         weight = self.weight[target]
         finite = np.isfinite(measured)
         known = np.isfinite(old)
-        close = np.abs(measured - np.where(known, old, 0)) <= AGREE_PX
-        still = ~reset & finite & known
-        agree = still & close
-        disagree = still & ~close
-        weight = np.where(agree, np.minimum(weight + 1, MAX_WEIGHT), np.where(disagree, weight - 1, weight))
-        mean = np.where(agree, old + (measured - np.where(known, old, 0)) / np.maximum(weight, 1), old)
-        # A changed pixel whose new value stays within half a pixel of the old one (the same
-        # surface, or one moving less than that in depth) starts over from the mean of both.
-        again = reset & finite & known & (np.abs(measured - np.where(known, old, 0)) <= RESTART_PX)
-        mean = np.where(again, 0.5 * (old + np.where(finite, measured, 0)), mean)
-        weight = np.where(again, 2, weight)
+        with np.errstate(invalid="ignore"):
+            diff = measured - old  # NaN or inf where either is invalid: never close
+            distance = np.abs(diff)
+        still = finite & known & ~reset
+        agree = still & (distance <= AGREE_PX)
+        disagree = still & ~agree
+        np.add(weight, 1, out=weight, where=agree)
+        np.minimum(weight, MAX_WEIGHT, out=weight, where=agree)
+        np.subtract(weight, 1, out=weight, where=disagree)
+        with np.errstate(invalid="ignore"):
+            np.add(old, diff / np.maximum(weight, 1), out=old, where=agree)
+            # A changed pixel whose new value stays within half a pixel of the old one (the same
+            # surface, or one moving less than that in depth) starts over from the mean of both.
+            again = reset & (distance <= RESTART_PX)
+            np.add(old, 0.5 * diff, out=old, where=again)
+        np.copyto(weight, 2, where=again)
         take = (reset & ~again) | (finite & ~known) | (disagree & (weight <= 0))
-        self.disparity[target] = np.where(take, measured, mean)
-        self.weight[target] = np.where(take, np.where(finite, 1, 0), weight).astype(np.float32)
+        np.copyto(old, measured, where=take)
+        np.copyto(weight, finite.astype(np.float32), where=take)
         if self.confidence is not None and confidence is not None:
-            self.confidence[target] = np.where(take | agree, confidence, self.confidence[target])
+            np.copyto(self.confidence[target], confidence, where=take | agree)

@@ -149,15 +149,17 @@ def test_moving_edges_do_not_trail(moving_runs, moving):
     assert _bad1(on, moving, left_behind) <= _bad1(off, moving, left_behind) + 1.0
 
 
-def test_still_scene_matches_one_band_of_rows_per_frame():
-    still = make_sequence("still", frames=4, width=240, height=180, noise=3.0)
-    matcher = SequenceMatcher(temporal="on", refresh_bands=6)
+def test_still_scene_is_matched_whole_every_third_frame_only():
+    still = make_sequence("still", frames=7, width=240, height=180, noise=3.0)
+    matcher = SequenceMatcher(temporal="on", refresh_every=3)
     notes = [matcher.push(left, right).notes["sequence"] for left, right in still.pairs()]
-    assert [n["changed"] for n in notes[1:]] == [0.0, 0.0, 0.0]
-    assert all(n["rematched"] == pytest.approx(1 / 6, abs=0.01) for n in notes[1:])
+    assert [n["changed"] for n in notes[1:]] == [0.0] * 6
+    # Frames 3 and 6 are matched whole; between them nothing changed, so nothing is matched.
+    assert [n["rematched"] for n in notes[1:]] == [0.0, 0.0, 1.0, 0.0, 0.0, 1.0]
+    assert [n["whole"] for n in notes[1:]] == [False, False, True, False, False, True]
     # The grey of RGB noise of 3 grey levels per channel has 3 x 0.668 grey levels.
     assert notes[-1]["noise_sigma"] == pytest.approx(3 * 0.668, rel=0.15)
-    assert matcher.record()["frames"] == 4
+    assert matcher.record()["frames"] == 7
 
 
 def test_seed_resumes_after_a_matched_frame(moving):
@@ -175,8 +177,8 @@ def test_seed_resumes_after_a_matched_frame(moving):
 def test_bad_options_and_frames_are_refused():
     with pytest.raises(ConfigError, match="temporal must be one of on, off"):
         SequenceMatcher(temporal="sometimes")
-    with pytest.raises(ConfigError, match="refresh_bands must be a whole number >= 1"):
-        SequenceMatcher(refresh_bands=0)
+    with pytest.raises(ConfigError, match="refresh_every must be a whole number >= 1"):
+        SequenceMatcher(refresh_every=0)
     rng = np.random.default_rng(2)
     texture = rng.integers(0, 256, (48, 96), dtype=np.uint8)
     matcher = SequenceMatcher(ndisp=16, name="clip")
