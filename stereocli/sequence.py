@@ -101,6 +101,12 @@ class SequenceMatcher:
     ----------
     ndisp, min_disp, preset, config, set, threads, calib, left_valid, right_valid, confidence, keep_invalid :
         As for :func:`stereocli.match`; they hold for every frame.
+    warm_up : bool, default False
+        As for :func:`stereocli.match`, on the first frame: its ``seconds`` exclude loading or
+        compiling the kernels.
+    disparity_right : bool, default False
+        Also return each frame's right-view disparity (``temporal="off"`` only: the temporal
+        filter steadies the left view's map).
     temporal : {"on", "off"}, default "on"
         ``"on"`` reuses the previous frames (still pixels kept, temporal filter); ``"off"``
         matches each frame on its own (the survey is still reused): each frame's map is
@@ -129,13 +135,17 @@ class SequenceMatcher:
                  config: ConfigLike = None, set: Assignments = None, threads: int | None = None,
                  calib: PathLike | MiddleburyCalib | None = None, left_valid: np.ndarray | None = None,
                  right_valid: np.ndarray | None = None, confidence: bool = False, keep_invalid: bool = False,
-                 temporal: str = "on", name: str = "", refresh_every: int = REFRESH_EVERY) -> None:
+                 temporal: str = "on", name: str = "", refresh_every: int = REFRESH_EVERY, warm_up: bool = False,
+                 disparity_right: bool = False) -> None:
         from .api import match_config
 
         if temporal not in TEMPORAL_MODES:
             raise ConfigError(f"temporal must be one of {', '.join(TEMPORAL_MODES)}, got {temporal!r}")
         if isinstance(refresh_every, bool) or not isinstance(refresh_every, (int, np.integer)) or refresh_every < 1:
             raise ConfigError(f"refresh_every must be a whole number >= 1, got {refresh_every!r}")
+        if disparity_right and temporal == "on":
+            raise ConfigError(named(name, "disparity_right needs temporal='off': the temporal filter steadies the "
+                                          "left view's map only"))
         self.config = match_config(preset, config, set, threads)
         self.temporal = temporal
         self.name = name
@@ -147,6 +157,8 @@ class SequenceMatcher:
         self._calib = calib
         self._masks = (left_valid, right_valid)
         self._flags = {"confidence": confidence, "keep_invalid": keep_invalid}
+        self._right = bool(disparity_right)
+        self._warm_up = bool(warm_up)  # until the first frame is matched
         self.frame = 0
         #: Frame indices whose survey was measured (the first) or refreshed.
         self.survey_frames: list[int] = []
@@ -208,15 +220,15 @@ class SequenceMatcher:
         return out
 
     def seed(self, disparity: np.ndarray, left: np.ndarray, right: np.ndarray, *, min_disp: int, ndisp: int,
-             frame: int | None = None, row_align: dict | None = None) -> None:
+             frame: int | None = None, row_align: dict | None = None, range_source: str = "estimated") -> None:
         """Resume after a frame matched earlier (e.g. ``--skip-existing``): its map ``disparity``
         ((H, W) float32, +inf invalid), its views and its range ``[min_disp, min_disp + ndisp)``
         become the previous frame's. ``frame``: that frame's index (the next push is
         ``frame + 1``); ``row_align``: its ``row_align`` note, so later frames repeat its rows
-        (without it the next frame measures them again).
+        (without it the next frame measures them again); ``range_source``: where the range came
+        from (``"estimated"``: a drift refreshes it; else it is kept).
 
-        The range counts as an estimated one (a drift refreshes it) and as reused: the survey
-        is not measured again for the next frame.
+        The range counts as reused: the survey is not measured again for the next frame.
         """
         from .api import _as_image
 
@@ -226,7 +238,7 @@ class SequenceMatcher:
             raise DataError(named(self.name, f"seed: disparity {disparity.shape} and views {left.shape[:2]}, "
                                              f"{right.shape[:2]} differ in size"))
         self._range = (int(min_disp), int(ndisp))
-        self._source = "estimated"
+        self._source = range_source
         self._surveyed = True
         self._calib = None
         self._shape = left.shape[:2]
@@ -249,7 +261,10 @@ class SequenceMatcher:
             min_disp, ndisp = None, "auto"
         calib = self._calib if survey else None
         result = match(left, right, ndisp=ndisp, min_disp=min_disp, config=self.config, calib=calib,
-                       left_valid=self._masks[0], right_valid=self._masks[1], name=self.name, **self._flags)
+                       left_valid=self._masks[0], right_valid=self._masks[1], name=self.name,
+                       disparity_right=self._right, warm_up=self._warm_up, confidence=self._flags["confidence"],
+                       keep_invalid=self._flags["keep_invalid"])
+        self._warm_up = False
         if survey:
             self.survey_frames.append(self.frame)
             self._range = (result.range.min_disp, result.range.ndisp)
@@ -344,8 +359,8 @@ class SequenceMatcher:
         for region in regions:
             rows, cols = region.rows, region.cols
             part = match_pair(region.crop(views.left), region.crop(views.right), crop_config, min_disp=min_disp,
-                              ndisp=ndisp, left_valid=region.crop(views.left_valid),
-                              right_valid=region.crop(views.right_valid), keep_invalid=self._flags["keep_invalid"],
+                              ndisp=ndisp, left_valid=region.crop_mask(views.left_valid),
+                              right_valid=region.crop_mask(views.right_valid), keep_invalid=self._flags["keep_invalid"],
                               want_confidence=self._flags["confidence"])
             for key, seconds in part.timings.items():
                 timings[key] = timings.get(key, 0.0) + seconds
@@ -426,9 +441,13 @@ class _Region:
     paste_rows: slice
     paste_cols: slice
 
-    def crop(self, image: np.ndarray | None) -> np.ndarray | None:
-        """``image``'s crop (contiguous), or None for None."""
-        return None if image is None else np.ascontiguousarray(image[self.rows, self.cols])
+    def crop(self, image: np.ndarray) -> np.ndarray:
+        """``image``'s crop (contiguous)."""
+        return np.ascontiguousarray(image[self.rows, self.cols])
+
+    def crop_mask(self, mask: np.ndarray | None) -> np.ndarray | None:
+        """``mask``'s crop, or None for None."""
+        return None if mask is None else self.crop(mask)
 
     @property
     def area(self) -> int:
@@ -500,6 +519,7 @@ class _ChangeGate:
             self.sigma = estimate if self.sigma is None else min(self.sigma, estimate)
         self.estimates += 1
         self.latest = grey_l
+        assert self.sigma is not None
         # Two blurred noisy views differ with std s·√2/3 (3 x 3 box); one grey level more for rounding.
         threshold = GATE_SIGMAS * self.sigma * np.sqrt(2.0) / 3.0 + 1.0
         self.blurred = [_blur(grey_l), _blur(grey_r)]

@@ -162,6 +162,30 @@ def test_still_scene_is_matched_whole_every_third_frame_only():
     assert matcher.record()["frames"] == 7
 
 
+def test_a_changed_region_is_matched_with_the_whole_frames_search(moving):
+    # Coarse to fine for the whole frame (55 disparities over 320 x 240 px: 4.2 M cells), not for
+    # the disc's crop alone: the crop must search as the whole frame does.
+    coarse = {"optimizer.coarse_min_volume": 2.0}
+    matcher = SequenceMatcher(set=coarse)
+    first, second = (matcher.push(left, right) for left, right in list(moving.pairs())[:2])
+    assert second.notes["sequence"]["whole"] is False and second.notes["sequence"]["regions"] == 1
+    alone = stereocli.match(moving.left[1], moving.right[1], set=coarse, ndisp=first.range.ndisp,
+                            min_disp=first.range.min_disp)
+    disc = moving.moving[1]
+    # (The full-range search on the crop leaves 0.6 % of the disc's pixels more than 0.5 px off.)
+    assert np.mean(np.abs(second.disparity[disc] - alone.disparity[disc]) <= 0.5) >= 0.999
+
+
+def test_temporal_off_gives_right_view_maps_and_warm_up_changes_nothing(moving):
+    results = list(match_sequence(list(moving.pairs())[:2], temporal="off", disparity_right=True, warm_up=True))
+    alone = stereocli.match(moving.left[1], moving.right[1], ndisp=results[0].range.ndisp,
+                            min_disp=results[0].range.min_disp, disparity_right=True)
+    assert np.array_equal(results[1].disparity, alone.disparity)
+    assert np.array_equal(results[1].disparity_right, alone.disparity_right)
+    with pytest.raises(ConfigError, match="disparity_right needs temporal='off'"):
+        SequenceMatcher(temporal="on", disparity_right=True)
+
+
 def test_seed_resumes_after_a_matched_frame(moving):
     first = stereocli.match(moving.left[0], moving.right[0])
     matcher = SequenceMatcher(temporal="on")
