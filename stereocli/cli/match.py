@@ -101,8 +101,8 @@ def match_cmd(ctx, inputs, outdir, config_files, sets, ndisp, min_disp, png16_sc
         code = _match_sequence(ctx, inputs, outdir, layout, build_config(config_files, sets), verbosity,
                                ndisp=ndisp, min_disp=min_disp, temporal=temporal or "on", right=right,
                                png16_scale=png16_scale, npy=npy, viz=viz or viz_range is not None, viz_range=viz_range,
-                               confidence=confidence, keep_invalid=keep_invalid, require_aligned=require_aligned, video_out=video_out,
-                               overwrite=overwrite, skip_existing=skip_existing, dry_run=dry_run)
+                               confidence=confidence, keep_invalid=keep_invalid, require_aligned=require_aligned,
+                               video_out=video_out, overwrite=overwrite, skip_existing=skip_existing, dry_run=dry_run)
         ctx.exit(code)
     if temporal is not None or video_out is not None:
         raise ConfigError(f"{'--temporal' if temporal is not None else '--video-out'} applies to sequences: "
