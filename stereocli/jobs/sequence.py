@@ -15,7 +15,8 @@ Frame ``i`` writes ``OUTDIR/<i as 6 digits>/`` (``000000``, ``000001``, ...) wit
 matched pair (:func:`~stereocli.jobs.match.write_match_outputs`), committed and marked complete as
 batch items are (:mod:`stereocli.jobs.items`). The frames run in one process, in order, through
 the batch runner's inline executor: interrupts, ``--skip-existing`` and the run record behave as
-for batches. A resumed sequence starts the matcher afresh at the first frame it redoes.
+for batches. A resumed sequence seeds the matcher with the outputs of the frame before the
+first it redoes (:meth:`SequenceRun._seed`), else starts it afresh there.
 """
 
 from __future__ import annotations
