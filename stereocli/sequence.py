@@ -500,7 +500,7 @@ class _ChangeGate:
         """Noise standard deviation of one view (grey levels) from its difference with the frame before."""
         import cv2
 
-        diff = (grey - before)[::2, ::2]
+        diff = grey[::2, ::2] - before[::2, ::2]
         by_median = float(np.median(np.abs(diff))) / (0.6745 * np.sqrt(2.0))
         response = cv2.filter2D(np.ascontiguousarray(diff), -1, self._NOISE_KERNEL)
         # The subsampled difference is white noise too; the kernel's response to it has std 6 s√2.
