@@ -112,6 +112,10 @@ class StageTraits:
     #: the note the stage left on the pair (``state.notes``; None if it left none): they repeat
     #: its effect on the mirrored pair instead of measuring it again.
     mirrored_params: Callable | None = None
+    #: ``f(params, note) -> params``: a preprocess stage's params that repeat on another pair of
+    #: the same rig what it did on this one (its note), without measuring again; e.g. the later
+    #: frames of a sequence (:mod:`stereocli.sequence`).
+    repeated_params: Callable | None = None
 
     # -- cost stages ----------------------------------------------------------------------
     #: ``f(state, params, winner: bool)``: cost + WTA in one pass, never storing the volume

@@ -194,13 +194,58 @@ def test_skip_existing_resumes_a_sequence_from_the_frames_to_redo(run_cli, tmp_p
     r = run_cli("match", "--sequence", root, "-o", out, "--ndisp", "16", "--skip-existing")
     assert r.code == 0 and "1 ok, 3 skipped, 0 failed" in r.err, r.err
     record = json.loads((out / "run.json").read_text())
-    # The matcher starts afresh at the frame it redoes: its survey is measured there.
-    assert record["sequence"]["matched"] == 1 and record["sequence"]["survey_frames"] == [2]
+    # The matcher is seeded with frame 1's outputs: frame 2 reuses its survey and its map.
+    assert record["sequence"]["matched"] == 1 and record["sequence"]["seeded_from"] == 1
+    assert record["sequence"]["survey_frames"] == []
     assert [i["status"] for i in record["items"]] == ["skipped", "skipped", "ok", "skipped"]
+    params = json.loads((out / "000002" / "params.json").read_text())
+    assert params["sequence"]["survey"] == "reused" and params["ndisp"] == 16
+    assert abs(median_disparity(out, "000002") - D) < 0.1
     assert (out / "000003" / "disp0.pfm").read_bytes() == first
     # Other settings make every frame stale: all are redone.
     r = run_cli("match", "--sequence", root, "-o", out, "--ndisp", "16", "--skip-existing", "--temporal", "off")
     assert r.code == 0 and "4 ok, 0 skipped" in r.err and "000000: stale outputs redone" in r.err
+
+
+def test_a_resumed_sequence_reuses_the_estimated_range_and_rows_of_the_frame_before(run_cli, tmp_path):
+    root = write_folder(tmp_path / "seq", textured_frames(3))
+    out = tmp_path / "out"
+    assert run_cli("match", "--sequence", root, "-o", out).code == 0
+    before = json.loads((out / "000001" / "params.json").read_text())
+    import shutil
+
+    shutil.rmtree(out / "000002")
+    r = run_cli("match", "--sequence", root, "-o", out, "--skip-existing")
+    assert r.code == 0 and "1 ok, 2 skipped, 0 failed" in r.err, r.err
+    params = json.loads((out / "000002" / "params.json").read_text())
+    assert params["sequence"]["survey"] == "reused"
+    assert (params["min_disp"], params["ndisp"]) == (before["min_disp"], before["ndisp"])
+    assert params["range"]["source"] == "estimated"
+    assert abs(median_disparity(out, "000002") - D) < 0.1
+
+
+def test_a_frame_without_usable_outputs_before_it_starts_the_matcher_afresh(run_cli, tmp_path):
+    root = write_folder(tmp_path / "seq", textured_frames(3))
+    out = tmp_path / "out"
+    assert run_cli("match", "--sequence", root, "-o", out, "--ndisp", "16").code == 0
+    (out / "000001" / "disp0.pfm").write_bytes(b"PF\nnot a map")
+    import shutil
+
+    shutil.rmtree(out / "000002")
+    r = run_cli("match", "--sequence", root, "-o", out, "--ndisp", "16", "--skip-existing")
+    assert r.code == 0 and "1 ok, 2 skipped, 0 failed" in r.err, r.err
+    record = json.loads((out / "run.json").read_text())
+    assert record["sequence"]["seeded_from"] is None and record["sequence"]["survey_frames"] == [2]
+
+
+def test_right_view_maps_come_with_temporal_off(run_cli, tmp_path):
+    root = write_folder(tmp_path / "seq", textured_frames(2))
+    out = tmp_path / "out"
+    r = run_cli("match", "--sequence", root, "-o", out, "--ndisp", "16", "--right", "--temporal", "off")
+    assert r.code == 0, r.err
+    for frame in ("000000", "000001"):
+        right = read_pfm(out / frame / "disp1.pfm")
+        assert right.shape == (H, W) and abs(float(np.median(right[:, : W - 2 * D])) - D) < 0.1
 
 
 def test_dry_run_prints_the_frames_and_writes_nothing(run_cli, tmp_path):
@@ -329,7 +374,7 @@ def test_inputs_that_make_no_sequence_are_refused_in_one_line(run_cli, tmp_path)
         (("match", "--sequence", tmp_path / "seq", "-o", out, "--video-out", tmp_path / "v.gif"), 2,
          "--video-out"),
         (("match", video, right_video, "-o", out, "--video-out", right_video), 2, "would replace the input"),
-        (("match", "--sequence", tmp_path / "seq", "-o", out, "--right"), 2, "--right: a sequence gives"),
+        (("match", "--sequence", tmp_path / "seq", "-o", out, "--right"), 2, "--right needs --temporal off"),
         (("match", "--sequence", tmp_path / "seq", "-o", out, "--jobs", "2"), 2, "--jobs: not available"),
         (("match", "--sequence", tmp_path / "seq", "-o", out, "--retries", "1"), 2, "--retries: not available"),
         (("match", "--sequence", tmp_path / "nowhere", "-o", out), 1, "nowhere: no such file or folder"),

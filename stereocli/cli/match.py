@@ -92,8 +92,6 @@ def match_cmd(ctx, inputs, outdir, config_files, sets, ndisp, min_disp, png16_sc
         raise ConfigError("--side-by-side and --top-bottom exclude each other: a video holds one layout")
     layout = "side-by-side" if side_by_side else "top-bottom" if top_bottom else None
     if sequence or layout or wants_sequence(inputs):
-        if right:
-            raise ConfigError("--right: a sequence gives the left view's disparity only")
         unavailable = {"--split-strips": split_strips, "--scheduler": scheduler, "--jobs": jobs > 1,
                        "--retries": retries}
         for flag, given in unavailable.items():
@@ -101,10 +99,10 @@ def match_cmd(ctx, inputs, outdir, config_files, sets, ndisp, min_disp, png16_sc
                 raise ConfigError(f"{flag}: not available for a sequence, which is matched in one process, "
                                   "frame after frame")
         code = _match_sequence(ctx, inputs, outdir, layout, build_config(config_files, sets), verbosity,
-                               ndisp=ndisp, min_disp=min_disp, temporal=temporal or "on", png16_scale=png16_scale,
-                               npy=npy, viz=viz or viz_range is not None, viz_range=viz_range, confidence=confidence,
-                               keep_invalid=keep_invalid, require_aligned=require_aligned, video_out=video_out,
-                               overwrite=overwrite, skip_existing=skip_existing, dry_run=dry_run)
+                               ndisp=ndisp, min_disp=min_disp, temporal=temporal or "on", right=right,
+                               png16_scale=png16_scale, npy=npy, viz=viz or viz_range is not None, viz_range=viz_range,
+                               confidence=confidence, keep_invalid=keep_invalid, require_aligned=require_aligned,
+                               video_out=video_out, overwrite=overwrite, skip_existing=skip_existing, dry_run=dry_run)
         ctx.exit(code)
     if temporal is not None or video_out is not None:
         raise ConfigError(f"{'--temporal' if temporal is not None else '--video-out'} applies to sequences: "

@@ -15,7 +15,8 @@ Frame ``i`` writes ``OUTDIR/<i as 6 digits>/`` (``000000``, ``000001``, ...) wit
 matched pair (:func:`~stereocli.jobs.match.write_match_outputs`), committed and marked complete as
 batch items are (:mod:`stereocli.jobs.items`). The frames run in one process, in order, through
 the batch runner's inline executor: interrupts, ``--skip-existing`` and the run record behave as
-for batches. A resumed sequence starts the matcher afresh at the first frame it redoes.
+for batches. A resumed sequence seeds the matcher with the outputs of the frame before the
+first it redoes (:meth:`SequenceRun._seed`), else starts it afresh there.
 """
 
 from __future__ import annotations
@@ -172,6 +173,7 @@ def plan_sequence(
     ndisp: int | str | None,
     min_disp: int | None,
     temporal: str = "on",
+    right: bool = False,
     png16_scale: float | None = None,
     npy: bool = False,
     viz: bool = False,
@@ -182,7 +184,8 @@ def plan_sequence(
     record_info: dict | None = None,
 ) -> list[WorkItem]:
     """One :class:`WorkItem` per frame of ``source``, named by its index, with the options of
-    :func:`~stereocli.jobs.match.plan_items` (less ``right`` and ``split_strips``) and ``temporal``.
+    :func:`~stereocli.jobs.match.plan_items` (less ``split_strips``) and ``temporal``; ``right``
+    (the right view's map) needs ``temporal="off"``.
 
     The range comes from ``--ndisp``/``--min-disp``, else the first frame's ``calib.txt``, else
     the matcher estimates it on the first frame it matches. Raises :class:`ConfigError` when
@@ -193,6 +196,8 @@ def plan_sequence(
 
     if temporal not in TEMPORAL_MODES:
         raise ConfigError(f"--temporal must be one of {', '.join(TEMPORAL_MODES)}, got {temporal!r}")
+    if right and temporal == "on":
+        raise ConfigError("--right needs --temporal off: the temporal filter steadies the left view's map only")
     outdir = Path(outdir)
     if confidence:
         check_confidence(config)
@@ -209,7 +214,7 @@ def plan_sequence(
                    "frame": index, "temporal": temporal, "source": source.kind}
         if info.get("note"):
             options["range_note"] = info["note"]
-        outputs = match_outputs(folder, png16_scale=png16_scale, npy=npy, viz=viz, confidence=confidence)
+        outputs = match_outputs(folder, png16_scale=png16_scale, npy=npy, viz=viz, confidence=confidence, right=right)
         items.append(WorkItem(name, source.frame_inputs(index), outputs, options, folder=str(folder), command="match",
                               config_digest=settings_digest(output_settings(options))))
     check_output_paths(items, outdir)
@@ -219,15 +224,20 @@ def plan_sequence(
 class SequenceRun:
     """The item function of a sequence's frames: decodes frame ``item.options["frame"]``,
     matches it with the one :class:`~stereocli.sequence.SequenceMatcher` of the run and writes
-    its outputs. Frames must come in order (the batch runner's inline executor); the matcher
-    starts at the first frame it is given, so a resumed run starts afresh where it resumes.
+    its outputs. Frames must come in order (the batch runner's inline executor). The matcher
+    starts at the first frame it is given; a resumed run (``--skip-existing``) seeds it with the
+    frame before's outputs when they are there (its map, range and row alignment), so it goes on
+    as the interrupted run would have, else it starts afresh.
     """
 
     def __init__(self, source: SequenceSource, items: list[WorkItem]) -> None:
         self.source = source
         self.options = items[0].options if items else {}
         self.confidence = bool(items) and "confidence" in items[0].outputs
+        self.right = bool(items) and "right" in items[0].outputs
+        self.by_frame = {item.options["frame"]: item for item in items}
         self.matcher = None
+        self.seeded: int | None = None  # the frame whose outputs seeded the matcher
         self.matched: list[int] = []  # frame indices in the order the matcher took them
         self._readers: dict[str, Any] = {}
         self.size: tuple[int, ...] | None = None  # (H, W) of the first frame decoded
@@ -245,7 +255,10 @@ class SequenceRun:
             (h, w), (hr, wr) = left.shape[:2], right.shape[:2]
             raise DataError(f"{item.name}: views of {w}x{h} and {wr}x{hr}; the sequence's frames are "
                             f"{self.size[1]}x{self.size[0]}")
+        fresh = self.matcher is None
         matcher = self._matcher()
+        if fresh and index > 0:
+            self._seed(matcher, index - 1)
         result = matcher.push(left, right)
         self.matched.append(index)
         if item.options["require_aligned"]:
@@ -269,8 +282,31 @@ class SequenceRun:
                                            left_valid=_load_mask(shared.get("left_valid")),
                                            right_valid=_load_mask(shared.get("right_valid")),
                                            confidence=self.confidence, keep_invalid=opts["keep_invalid"],
-                                           temporal=opts["temporal"])
+                                           temporal=opts["temporal"], disparity_right=self.right, warm_up=True)
         return self.matcher
+
+    def _seed(self, matcher, index: int) -> None:
+        """Seed ``matcher`` with frame ``index``'s outputs (``disp0.pfm``, and ``params.json``'s
+        range and ``row_align`` note) when they are there and readable; else leave it afresh."""
+        import json
+
+        from ..io.pfm import read_pfm
+
+        item = self.by_frame.get(index)
+        if item is None or not all(Path(item.outputs[k]).is_file() for k in ("disparity", "params")):
+            return
+        try:
+            params = json.loads(Path(item.outputs["params"]).read_text())
+            min_disp, ndisp = int(params["min_disp"]), int(params["ndisp"])
+            source = str(params.get("range", {}).get("source", "estimated"))
+            row_align = (params.get("stage_notes") or {}).get("row_align")
+            disparity = read_pfm(item.outputs["disparity"])
+            left, right = self._views(index)
+            matcher.seed(disparity, left, right, min_disp=min_disp, ndisp=ndisp, row_align=row_align,
+                         range_source=source)
+        except (OSError, ValueError, KeyError, TypeError, AttributeError, DataError):
+            return  # outputs of no use to resume from: the matcher starts afresh at this frame
+        self.seeded = index
 
     def _views(self, index: int) -> tuple[np.ndarray, np.ndarray]:
         """Frame ``index``'s ``(left, right)`` views: RGB (or grey image files), decoded."""
@@ -308,7 +344,7 @@ class SequenceRun:
         if self.matcher is not None:
             surveyed = [self.matched[k] for k in self.matcher.survey_frames if k < len(self.matched)]
         return {**self.source.as_record(), "temporal": self.options.get("temporal"), "matched": len(self.matched),
-                "survey_frames": surveyed, "survey_refreshes": surveyed[1:],
+                "seeded_from": self.seeded, "survey_frames": surveyed, "survey_refreshes": surveyed[1:],
                 "matcher": self.matcher.record() if self.matcher is not None else None}
 
 

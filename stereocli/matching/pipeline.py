@@ -815,6 +815,12 @@ def _timed(timings: dict, key: str, func, state: MatchState, params) -> None:
     timings[key] = timings.get(key, 0.0) + time.perf_counter() - t0
 
 
+def release_config() -> None:
+    """Forget the config :func:`prepare` noted for this thread (for a caller that runs only
+    :func:`prepare`, e.g. to preprocess a whole frame whose parts it then matches)."""
+    _current_config.pop(threading.get_ident(), None)
+
+
 def current_config() -> PipelineConfig | None:
     """The config of the pair the calling thread is matching (between :func:`prepare` and the end
     of :func:`finish`), else that of a pair another thread is matching (a kernel helper thread

@@ -382,8 +382,18 @@ def _mirrored_row_align(p: RowAlignParams, note: dict | None) -> RowAlignParams:
                                tilt_y=-note["tilt_y_px"])
 
 
+def _repeated_row_align(p: RowAlignParams, note: dict | None) -> RowAlignParams:
+    """The pair's plane given to another pair of the same rig (a later frame): the same
+    correction, or none where the pair was left as it was."""
+    if note is None or not note.get("applied"):
+        return dataclasses.replace(p, measure=False, offset=0.0, tilt_x=0.0, tilt_y=0.0)
+    return dataclasses.replace(p, measure=False, offset=note["offset_px"], tilt_x=note["tilt_x_px"],
+                               tilt_y=note["tilt_y_px"])
+
+
 @register("preprocess", "row_align", RowAlignParams,
           traits=StageTraits(reads_left_colour=False, reads_right_colour=False, mirrored_params=_mirrored_row_align,
+                             repeated_params=_repeated_row_align,
                              map_copies=2.5))
 def row_align(state: MatchState, p: RowAlignParams) -> None:
     """Resample the right view onto the left view's rows: corrects a residual vertical offset.
