@@ -9,11 +9,12 @@ truth and disparity range scaled alike, and written as PNG files. Each size is t
 * a Python process that reads the PNG files with OpenCV, runs SGBM 3WAY with the settings of
   ``docs/benchmarks.md`` and writes the disparity as a PFM file,
 
-taking turns for ``--repeat`` rounds. Each process's peak resident set size (``ru_maxrss`` from
-``wait4``) and wall time are measured from outside; each keeps its best time and its largest
-peak. The table gives the ratios to OpenCV's, the planner's estimate of the peak
-(``params.json``'s ``memory_estimate_gb``) over the measured peak, and bad 2 px (all pixels with
-ground truth) of both maps.
+taking turns for ``--repeat`` rounds. Each process reports its own peak resident set size as it
+exits (``VmHWM`` in ``/proc/self/status``: ``ru_maxrss`` would count the resident memory of the
+process that started it, which the kernel carries over the exec); wall time is measured from
+outside. Each keeps its best time and its largest peak. The table gives the ratios to OpenCV's,
+the planner's estimate of the peak (``params.json``'s ``memory_estimate_gb``) over the measured
+peak, and bad 2 px (all pixels with ground truth) of both maps.
 
     python benchmarks/pair_size.py                                   # Books, 1x 2x 3x, default preset
     python benchmarks/pair_size.py --scene Dolls --factors 1,2 --repeat 3
@@ -40,9 +41,27 @@ REPO = Path(__file__).resolve().parents[1]
 DEFAULT_DATA = REPO.parent / "shared" / "data"
 GIB = 1024.0**3
 
+#: Written first into both processes: at exit, the process's peak RSS (KiB) goes to the file named
+#: by its first argument, which is then removed from ``sys.argv``.
+PEAK_PRELUDE = r"""
+import atexit, sys
+def _write_peak(path=sys.argv.pop(1)):
+    with open("/proc/self/status") as status:
+        peak = status.read().split("VmHWM:")[1].split()[0]
+    with open(path, "w") as out:
+        out.write(peak)
+atexit.register(_write_peak)
+"""
+
+#: The stereocli process: ``stereocli`` with the arguments after the peak file.
+STEREOCLI_SCRIPT = PEAK_PRELUDE + r"""
+import runpy
+sys.argv[0] = "stereocli"
+runpy.run_module("stereocli", run_name="__main__")
+"""
+
 #: The OpenCV process: the settings of benchmarks/accuracy.py's ``opencv_matcher("3way", ...)``.
-OPENCV_SCRIPT = r"""
-import sys
+OPENCV_SCRIPT = PEAK_PRELUDE + r"""
 import cv2
 import numpy as np
 left_path, right_path, ndisp, out, threads = sys.argv[1:6]
@@ -63,17 +82,15 @@ with open(out, "wb") as f:
 """
 
 
-def run_measured(cmd: list[str], env: dict) -> tuple[float, float]:
-    """Run ``cmd``; return ``(wall seconds, peak RSS GiB)`` of that process alone."""
+def run_measured(cmd: list[str], env: dict, peak_file: Path) -> tuple[float, float]:
+    """Run ``cmd`` (a script with :data:`PEAK_PRELUDE`; ``peak_file`` its first argument); return
+    ``(wall seconds, peak RSS GiB)`` of that process alone."""
     t0 = time.perf_counter()
-    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    _, status, usage = os.wait4(proc.pid, 0)
+    out = subprocess.run(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     seconds = time.perf_counter() - t0
-    proc.returncode = os.waitstatus_to_exitcode(status)
-    err = proc.stderr.read().decode() if proc.stderr else ""
-    if proc.returncode != 0:
-        raise SystemExit(f"{' '.join(cmd[:4])}...: exit {proc.returncode}: {err.strip()[-400:]}")
-    return seconds, usage.ru_maxrss * 1024 / GIB  # ru_maxrss is KiB on Linux
+    if out.returncode != 0:
+        raise SystemExit(f"{' '.join(cmd[:4])}...: exit {out.returncode}: {out.stderr.strip()[-400:]}")
+    return seconds, int(peak_file.read_text()) * 1024 / GIB
 
 
 def bad(disparity: np.ndarray, truth: np.ndarray, threshold: float = 2.0) -> float:
@@ -135,16 +152,19 @@ def main(argv=None) -> int:
             paths = [str(folder / "left.png"), str(folder / "right.png")]
             cv2.imwrite(paths[0], left)
             cv2.imwrite(paths[1], right)
-            ours_cmd = [sys.executable, "-m", "stereocli", "match", *paths, "-o", str(folder / "out"), "--ndisp",
-                        str(ndisp), "--overwrite", *(["--config", args.preset] if args.preset != "default" else []),
+            peak_file = folder / "peak_kib"
+            ours_cmd = [sys.executable, "-c", STEREOCLI_SCRIPT, str(peak_file), "match", *paths, "-o",
+                        str(folder / "out"), "--ndisp", str(ndisp), "--overwrite",
+                        *(["--config", args.preset] if args.preset != "default" else []),
                         *(a for s in sets for a in ("--set", s))]
             cv_out = str(folder / "opencv.pfm")
-            cv_cmd = [sys.executable, "-c", OPENCV_SCRIPT, *paths, str(ndisp), cv_out, str(args.threads)]
+            cv_cmd = [sys.executable, "-c", OPENCV_SCRIPT, str(peak_file), *paths, str(ndisp), cv_out,
+                      str(args.threads)]
             best = {"ours": (np.inf, 0.0), "opencv": (np.inf, 0.0)}
             for round_ in range(args.repeat):
                 order = [("ours", ours_cmd), ("opencv", cv_cmd)]
                 for name, cmd in order if round_ % 2 == 0 else order[::-1]:
-                    seconds, peak = run_measured(cmd, env)
+                    seconds, peak = run_measured(cmd, env, peak_file)
                     best[name] = (min(best[name][0], seconds), max(best[name][1], peak))
             sys.path.insert(0, str(REPO))
             from stereocli.io.pfm import read_pfm
