@@ -67,7 +67,7 @@ __all__ = ["TEMPORAL_MODES", "SequenceMatcher", "match_sequence"]
 TEMPORAL_MODES = ("on", "off")
 
 #: Every this-many-th frame is matched whole (``refresh_every=``): the still pixels' new evidence.
-REFRESH_EVERY = 3
+REFRESH_EVERY = 5
 #: A pixel has changed where its blurred difference exceeds this many standard deviations of the
 #: blurred noise (one false alarm in about 10^5 pixels, before the speck filter drops them).
 GATE_SIGMAS = 4.5
@@ -114,7 +114,7 @@ class SequenceMatcher:
         :func:`stereocli.match`'s with the sequence's range.
     name : str, optional
         The sequence's name, put before error messages and warnings.
-    refresh_every : int, default 3
+    refresh_every : int, default 5
         ``temporal="on"``: every ``refresh_every``-th frame is matched whole (1: every frame);
         the frames between match only the regions that changed.
 

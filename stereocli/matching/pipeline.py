@@ -509,7 +509,7 @@ def finish(prepared: PreparedPair, results: Iterable[StripResult], config: Pipel
     # Pixels invalid at some point from here on, filled or not: their confidence is 0 (a map
     # stage may make the confidence map too).
     holes = ~np.isfinite(disparity)
-    lo, hi = range_bounds(state.min_disp, state.ndisp)
+    lo, hi = (float(bound) for bound in range_bounds(state.min_disp, state.ndisp))
     timings["unmatched"] = time.perf_counter() - t0
     state.disparity, state.disparity_right = disparity, maps["disparity_right"]
     state.confidence = maps["confidence"]
