@@ -306,6 +306,12 @@ def readme_against_opencv(board: Board) -> str:
     per_pair = [v for v in per_pair if v is not None]
     if per_pair:
         text += f" Per MiddEval3 pair the default takes {min(per_pair):.2f}–{max(per_pair):.2f}× SGBM 3WAY's time."
+    entry = board.entry("stereocli default", "mb2014")
+    run = board.data["runs"].get(entry.get("times_run") or entry["scores_run"]) if entry else None
+    if run:
+        threads = f"{run['threads']} thread{'s' if run['threads'] != 1 else ''}"
+        text += (f" Times (× SGBM 3WAY) measured on {run['cpu']}, {run['cores']} cores, {threads}: the ratio "
+                 "depends on the CPU, so measure yours with the harness.")
     return text.strip()
 
 
