@@ -66,9 +66,11 @@ def test_coarse_to_fine_estimate_is_within_one_and_a_half_times_the_peak(shared_
 @pytest.mark.slow
 @pytest.mark.skipif(sys.platform != "linux", reason="reads /proc/self/status (Linux)")
 def test_a_budget_below_the_default_plan_is_honoured(shared_data):
-    # The default plan of this pair peaks near 0.2 GiB; under 0.16 GiB the planner cuts smaller
-    # strips, and the process stays within the budget.
-    m = _measure(shared_data / "middlebury2014" / "trainingQ" / "Jadeplant", "runtime.memory_gb=0.16")
-    assert m["strips"] > 4, m
-    assert m["peak"] <= 0.16, m
-    assert m["peak"] / 1.5 <= m["estimate"] <= 0.16, m
+    # The default plan of this pair (6 strips) peaks near 0.18 GiB; under 0.15 GiB the planner
+    # cuts smaller strips, and the process stays within the budget.
+    scene = shared_data / "middlebury2014" / "trainingQ" / "Jadeplant"
+    default = _measure(scene)
+    m = _measure(scene, "runtime.memory_gb=0.15")
+    assert m["strips"] > default["strips"], (m, default)
+    assert m["peak"] <= 0.15, m
+    assert m["peak"] / 1.5 <= m["estimate"] <= 0.15, m

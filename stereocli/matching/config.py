@@ -31,7 +31,7 @@ class RuntimeParams:
                              unit="GiB", low=0.1, high=1024)
     strip_rows: int = param(0, "rows per strip (0 = whole image when it fits the budget, else automatic)",
                             unit="rows", low=0, high=100000)
-    strip_overlap: int = param(48, "extra rows above and below each strip so paths and windows see context",
+    strip_overlap: int = param(32, "extra rows above and below each strip so paths and windows see context",
                                unit="rows", low=0, high=4096)
     threads: int = param(0, "compiled-kernel threads (0 = all cores); output does not depend on it", low=0, high=1024)
 

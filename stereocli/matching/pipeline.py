@@ -136,7 +136,7 @@ def estimate_memory(config: PipelineConfig, height: int, width: int, ndisp: int,
 #: with ``runtime.strip_overlap`` rows of context each side (the price: those rows are matched
 #: twice). MiddEval3 Q, KITTI and the other pairs up to about half a megapixel run whole.
 WHOLE_SEARCH_BYTES = 128 * 2**20
-AUTO_STRIP_ROWS = 256
+AUTO_STRIP_ROWS = 192
 
 def _own_search_bytes(config: PipelineConfig, height: int, width: int, ndisp: int,
                       image_rows: int = 0) -> float | None:
