@@ -36,8 +36,13 @@ The reuse rule (``temporal="on"``; ``docs/design.md`` states it for users):
   The pixels whose left view changed take the new values as they are (the filter restarts
   there); those whose match in the right view changed go through the filter.
 * **Where the scene holds still** the previous value stands, and every ``refresh_every``-th frame
-  (:data:`REFRESH_EVERY`) is matched whole, as a frame matched on its own is; its still pixels'
-  values go through the filter, so they average the whole-frame measurements.
+  (:data:`REFRESH_EVERY`) is matched whole; its still pixels' values go through the filter, so
+  they average the whole-frame measurements. A whole-frame refresh searches each pixel around
+  the previous map (``narrow``, as tSGM narrows its per-pixel ranges: the map at half resolution
+  is the coarse level of the coarse-to-fine search), except within :data:`PRIOR_MARGIN` px of a
+  change or where the map is invalid, which search the full range; every
+  :data:`WIDE_REFRESH_EVERY`-th refresh searches as a frame on its own, so no value stays only
+  because the narrowed searches kept it.
 * **Temporal filter.** A still pixel's value is the running mean of its measurements that agree
   with it within :data:`AGREE_PX` (at most :data:`MAX_WEIGHT` frames' worth, so a slow drift
   still comes through); a measurement that disagrees lowers the pixel's weight, and at weight 0
@@ -73,6 +78,13 @@ REFRESH_EVERY = 5
 GATE_SIGMAS = 4.5
 #: px the change mask grows by: the census window's half (2) and an edge's blur.
 RESET_RADIUS = 4
+#: px around a changed pixel that search the full range on a whole-frame refresh (the previous
+#: map narrows the others): the SGM windows' coarse neighbourhood (2 coarse px) and one more.
+PRIOR_MARGIN = 6
+#: Every this-many-th whole-frame refresh searches as a frame on its own (the full range, coarse
+#: to fine) instead of around the previous map, so a value the narrowed searches keep is put to
+#: the whole range again.
+WIDE_REFRESH_EVERY = 3
 #: px of context around a region matched again (SGM paths, the aggregation windows).
 CONTEXT = 16
 #: px around the changed pixels whose new values go through the filter.
@@ -137,7 +149,7 @@ class SequenceMatcher:
                  calib: PathLike | MiddleburyCalib | None = None, left_valid: np.ndarray | None = None,
                  right_valid: np.ndarray | None = None, confidence: bool = False, keep_invalid: bool = False,
                  temporal: str = "on", name: str = "", refresh_every: int = REFRESH_EVERY, warm_up: bool = False,
-                 disparity_right: bool = False) -> None:
+                 disparity_right: bool = False, narrow: bool = True) -> None:
         from .api import match_config
 
         if temporal not in TEMPORAL_MODES:
@@ -151,6 +163,8 @@ class SequenceMatcher:
         self.temporal = temporal
         self.name = name
         self.refresh_every = int(refresh_every)
+        self.narrow = bool(narrow)
+        self._refreshes = 0  # whole frames matched since the first
         self._since_whole = 0  # frames matched since the last whole-frame match
         self._notes: dict = {}  # the pipeline's notes on the last frame whose views were prepared
         self._range: tuple[int | None, int | str | None] = (min_disp, ndisp)
@@ -319,6 +333,7 @@ class SequenceMatcher:
         from .api import MatchRange, MatchResult
         from .matching.config import small_twin
         from .matching.pipeline import match_pair, prepare, release_config
+        from .matching.warmup import with_coarse_level
 
         state = self._state
         assert state is not None
@@ -357,6 +372,13 @@ class SequenceMatcher:
             if self._repeat is None:  # the rows were measured on this frame: repeat them from now on
                 self._repeat = self._repeating_config(views.notes)
         rematched = np.zeros(changed.shape, bool)
+        whole_frame = len(regions) == 1 and regions[0].area == h * w
+        if whole_frame:
+            self._refreshes += 1
+        if whole_frame and self.narrow and self._refreshes % WIDE_REFRESH_EVERY:
+            # The previous frame narrows each still pixel's search (its coarse level); a changed
+            # or invalid pixel, and every WIDE_REFRESH_EVERY-th refresh, search the full range.
+            crop_config = with_coarse_level(crop_config, _prior_coarse_level(state.disparity, changed))
         for region in regions:
             rows, cols = region.rows, region.cols
             part = match_pair(region.crop(views.left), region.crop(views.right), crop_config, min_disp=min_disp,
@@ -406,6 +428,26 @@ def match_sequence(frames: Iterable[tuple[np.ndarray, np.ndarray]], **options: A
 
 
 # --------------------------------------------------------------------------- helpers
+
+
+def _prior_coarse_level(disparity: np.ndarray, changed: np.ndarray):
+    """A coarse level (``coarse_level=`` of the SGM stage) from the previous frame's map: its
+    disparities at half resolution in coarse px, ``+inf`` where the image changed or the map is
+    invalid (those pixels search the full range)."""
+    import cv2
+
+    # Grown by the coarse neighbourhood a window spans (PRIOR_MARGIN px), so no pixel near a
+    # change takes its window from the still pixels around it alone.
+    size = 2 * PRIOR_MARGIN + 1
+    near_change = cv2.dilate(changed.view(np.uint8), np.ones((size, size), np.uint8)).view(bool)
+    prior = np.where(near_change, np.float32(np.inf), disparity)[::2, ::2] / np.float32(2)
+
+    def coarse_level(state, params, cost) -> np.ndarray:
+        h, w = -(-state.shape[0] // 2), -(-state.shape[1] // 2)
+        y0 = state.row_offset // 2
+        return np.ascontiguousarray(prior[y0:y0 + h, :w], dtype=np.float32)
+
+    return coarse_level
 
 
 def _grey(image: np.ndarray) -> np.ndarray:

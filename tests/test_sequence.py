@@ -209,3 +209,45 @@ def test_bad_options_and_frames_are_refused():
     matcher.push(texture, np.roll(texture, -3, axis=1))
     with pytest.raises(DataError, match="clip: frame 1 is 48x96; the sequence's frames are 96x48"):
         matcher.push(texture.T.copy(), texture.T.copy())
+
+
+def test_whole_frame_refreshes_search_around_the_previous_map_but_every_third(monkeypatch):
+    import stereocli.matching.warmup as warmup
+    from stereocli.sequence import WIDE_REFRESH_EVERY
+
+    narrowed = []
+    original = warmup.with_coarse_level
+
+    def counted(config, coarse_level):
+        narrowed.append(coarse_level)
+        return original(config, coarse_level)
+
+    monkeypatch.setattr(warmup, "with_coarse_level", counted)
+    still = make_sequence("still", frames=7, width=240, height=180, noise=3.0)
+    matcher = SequenceMatcher(refresh_every=1)  # every later frame is a whole-frame refresh
+    results = [matcher.push(left, right) for left, right in still.pairs()]
+    assert WIDE_REFRESH_EVERY == 3
+    assert len(narrowed) == 4  # refreshes 1, 2, 4 and 5 narrowed; 3 and 6 searched the full range
+    assert all(r.notes["sequence"]["whole"] for r in results[1:])
+    assert _bad1([r.disparity for r in results], still) <= _bad1([results[0].disparity], still) + 0.5
+
+
+def test_the_previous_map_narrows_only_pixels_away_from_a_change():
+    from stereocli.matching.state import MatchState
+    from stereocli.sequence import PRIOR_MARGIN, _prior_coarse_level
+
+    disparity = np.full((40, 60), 12.0, np.float32)
+    disparity[5, 5] = np.inf
+    changed = np.zeros((40, 60), bool)
+    changed[20, 30] = True
+    state = MatchState(np.zeros((40, 60), np.float32), np.zeros((40, 60), np.float32), 0, 32)
+    coarse = _prior_coarse_level(disparity, changed)(state, None, None)
+    assert coarse.shape == (20, 30) and coarse.dtype == np.float32
+    near = np.zeros((40, 60), bool)
+    near[20 - PRIOR_MARGIN:21 + PRIOR_MARGIN, 30 - PRIOR_MARGIN:31 + PRIOR_MARGIN] = True
+    near[5, 5] = True  # invalid: no prior
+    expected = np.where(near, np.inf, 6.0)[::2, ::2]  # coarse px: half the disparity
+    np.testing.assert_array_equal(coarse, expected.astype(np.float32))
+    # A strip's rows: the prior's rows from its offset.
+    strip = MatchState(np.zeros((16, 60), np.float32), np.zeros((16, 60), np.float32), 0, 32, row_offset=16)
+    np.testing.assert_array_equal(_prior_coarse_level(disparity, changed)(strip, None, None), expected[8:16])
