@@ -129,6 +129,10 @@ class SequenceMatcher:
     refresh_every : int, default 5
         ``temporal="on"``: every ``refresh_every``-th frame is matched whole (1: every frame);
         the frames between match only the regions that changed.
+    narrow : bool, default True
+        ``temporal="on"``: a whole-frame refresh searches each still pixel around the previous
+        map (the full range near a change, where the map is invalid, and on every
+        :data:`WIDE_REFRESH_EVERY`-th refresh); False: every refresh searches as a frame on its own.
 
     Examples
     --------
