@@ -129,12 +129,8 @@ def plan_items(
         for key in ("calib", "left_valid", "right_valid"):
             if getattr(pair, key):
                 inputs[key] = getattr(pair, key)
-        options = {"config": config, "min_disp": lo, "ndisp": nd, "range_source": info["range_source"],
-                   "png16_scale": png16_scale, "keep_invalid": keep_invalid, "require_aligned": require_aligned,
-                   "vmin": viz_range[0] if viz_range else info.get("vmin"),
-                   "vmax": viz_range[1] if viz_range else info.get("vmax"), "record": record_info or {}}
-        if info.get("note"):
-            options["range_note"] = info["note"]
+        options = match_options(config, lo, nd, info, png16_scale=png16_scale, keep_invalid=keep_invalid,
+                                require_aligned=require_aligned, viz_range=viz_range, record_info=record_info)
         if split_strips:
             options["split_strips"] = True
         items.append(WorkItem(pair.name, inputs, outputs, options, folder=str(folder), command="match",
@@ -143,6 +139,21 @@ def plan_items(
             items[-1].error, items[-1].error_code = label_message(pair.name, str(error)), error.exit_code
     check_output_paths(items, outdir)
     return items
+
+
+def match_options(config: dict, min_disp: int | None, ndisp: int | None, range_info: dict, *,
+                  png16_scale: float | None, keep_invalid: bool, require_aligned: bool,
+                  viz_range: tuple[float, float] | None, record_info: dict | None) -> dict[str, Any]:
+    """The options of one match item (what :func:`match_item` and the outputs read): the range
+    and where it came from (:func:`resolve_range`'s ``range_info``), the output settings and the
+    preview colours (``viz_range``, else calib.txt's vmin/vmax)."""
+    options = {"config": config, "min_disp": min_disp, "ndisp": ndisp, "range_source": range_info["range_source"],
+               "png16_scale": png16_scale, "keep_invalid": keep_invalid, "require_aligned": require_aligned,
+               "vmin": viz_range[0] if viz_range else range_info.get("vmin"),
+               "vmax": viz_range[1] if viz_range else range_info.get("vmax"), "record": record_info or {}}
+    if range_info.get("note"):
+        options["range_note"] = range_info["note"]
+    return options
 
 
 def match_outputs(folder: Path, *, png16_scale: float | None = None, npy: bool = False, viz: bool = False,

@@ -31,7 +31,7 @@ import numpy as np
 from ..errors import ConfigError, DataError, check_outputs_free
 from ..io.pairs import StereoInput, natural_key
 from .items import RESUME_HINT, WorkItem, check_output_paths, settings_digest
-from .match import match_outputs, output_settings, resolve_range, write_match_outputs
+from .match import match_options, match_outputs, output_settings, resolve_range, write_match_outputs
 
 #: The output folder name of frame ``i``.
 FRAME_NAME = "{:06d}"
@@ -207,13 +207,9 @@ def plan_sequence(
     for index in range(source.frames):
         name = FRAME_NAME.format(index)
         folder = outdir / name
-        options = {"config": config, "min_disp": lo, "ndisp": nd, "range_source": info["range_source"],
-                   "png16_scale": png16_scale, "keep_invalid": keep_invalid, "require_aligned": require_aligned,
-                   "vmin": viz_range[0] if viz_range else info.get("vmin"),
-                   "vmax": viz_range[1] if viz_range else info.get("vmax"), "record": record_info or {},
-                   "frame": index, "temporal": temporal, "source": source.kind}
-        if info.get("note"):
-            options["range_note"] = info["note"]
+        options = match_options(config, lo, nd, info, png16_scale=png16_scale, keep_invalid=keep_invalid,
+                                require_aligned=require_aligned, viz_range=viz_range, record_info=record_info)
+        options.update(frame=index, temporal=temporal, source=source.kind)
         outputs = match_outputs(folder, png16_scale=png16_scale, npy=npy, viz=viz, confidence=confidence, right=right)
         items.append(WorkItem(name, source.frame_inputs(index), outputs, options, folder=str(folder), command="match",
                               config_digest=settings_digest(output_settings(options))))
