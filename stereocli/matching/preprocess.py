@@ -376,19 +376,23 @@ def _mirrored_row_align(p: RowAlignParams, note: dict | None) -> RowAlignParams:
     was (too few tracks, scattered ones, an offset too small) stays as it is mirrored too. The
     plane is read at the other view's column (``x − d``): with a tilt of 1 px across the width
     and disparities of a tenth of it, 0.1 px off at most, well within the fit's spread."""
-    if note is None or not note.get("applied"):
-        return dataclasses.replace(p, measure=False, offset=0.0, tilt_x=0.0, tilt_y=0.0)
-    return dataclasses.replace(p, measure=False, offset=-note["offset_px"], tilt_x=note["tilt_x_px"],
-                               tilt_y=-note["tilt_y_px"])
+    return _given_plane(p, note, sign=-1.0)
 
 
 def _repeated_row_align(p: RowAlignParams, note: dict | None) -> RowAlignParams:
     """The pair's plane given to another pair of the same rig (a later frame): the same
     correction, or none where the pair was left as it was."""
+    return _given_plane(p, note, sign=1.0)
+
+
+def _given_plane(p: RowAlignParams, note: dict | None, *, sign: float) -> RowAlignParams:
+    """``p`` applying the plane of ``note`` (what row_align found on a pair) without measuring:
+    its offset and its change down the image times ``sign``, its change across the image as it
+    is; no correction when the pair was left as it was (or left no note)."""
     if note is None or not note.get("applied"):
         return dataclasses.replace(p, measure=False, offset=0.0, tilt_x=0.0, tilt_y=0.0)
-    return dataclasses.replace(p, measure=False, offset=note["offset_px"], tilt_x=note["tilt_x_px"],
-                               tilt_y=note["tilt_y_px"])
+    return dataclasses.replace(p, measure=False, offset=sign * note["offset_px"], tilt_x=note["tilt_x_px"],
+                               tilt_y=sign * note["tilt_y_px"])
 
 
 @register("preprocess", "row_align", RowAlignParams,
