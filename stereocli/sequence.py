@@ -455,13 +455,11 @@ def _prior_coarse_level(disparity: np.ndarray, changed: np.ndarray):
 
 
 def _grey(image: np.ndarray) -> np.ndarray:
-    """(H, W) float32 grey of a view (uint8, uint16 or float; RGB or grey), 0..255."""
-    from .io.images import to_float_image
-    from .matching.kernels.images import luma
+    """(H, W) float32 grey of a view (uint8, uint16 or float; RGB or grey), 0..255: the luma the
+    pipeline matches when no stage reads colour."""
+    from .matching.pipeline import working_image
 
-    if image.ndim == 3:
-        return luma(image if image.dtype == np.uint8 else to_float_image(image))
-    return to_float_image(image)
+    return working_image(image, grey=True)
 
 
 def _reads_colour(config: PipelineConfig) -> bool:

@@ -393,8 +393,8 @@ def prepare(
     want_right = want_right or any(c.stage.traits.needs_right for c in refinements)
     calls = [*config.preprocess, config.cost, *config.aggregation, config.optimizer, *refinements]
     state = MatchState(
-        left=_working_image(left, grey=not _reads_colour(calls, "left")),
-        right=_working_image(right, grey=not _reads_colour(calls, "right")),
+        left=working_image(left, grey=not _reads_colour(calls, "left")),
+        right=working_image(right, grey=not _reads_colour(calls, "right")),
         min_disp=int(min_disp),
         ndisp=int(ndisp),
         left_valid=_as_valid(left_valid, shape, "left"),
@@ -423,7 +423,7 @@ def _reads_colour(calls: list, side: str) -> bool:
     return False
 
 
-def _working_image(image: np.ndarray, grey: bool) -> np.ndarray:
+def working_image(image: np.ndarray, grey: bool) -> np.ndarray:
     """An input view as the stages see it: float32 in [0, 255], or with ``grey`` its (H, W) luma
     (what ``state.gray`` would give), taken straight from 8-bit colours without their float
     copy. Grey views make preprocessing (``row_align``'s resampling) move one channel instead of
