@@ -104,6 +104,14 @@ def quantization(cost_max: float, paths: int, p1: float, p2: float, levels: int)
 COARSE_RANGE_STEP = 8
 
 
+def coarse_range(min_disp: int, ndisp: int) -> tuple[int, int]:
+    """``(min_disp, ndisp)`` of the level below, in its px: the range halved and its count rounded
+    up to ``COARSE_RANGE_STEP`` hypotheses (extended beyond the far end)."""
+    lo_d = int(np.floor(min_disp / 2))
+    hi_d = int(np.ceil((min_disp + ndisp - 1) / 2))
+    return lo_d, -(-(hi_d - lo_d + 1) // COARSE_RANGE_STEP) * COARSE_RANGE_STEP
+
+
 def coarse_disparity(state: MatchState, p: SGMParams, cost) -> np.ndarray:
     """Left disparities of the pair at half resolution (full range, rounded up to
     ``COARSE_RANGE_STEP`` hypotheses; same cost and SGM), LR checked (±1 coarse px);
@@ -117,11 +125,9 @@ def coarse_disparity(state: MatchState, p: SGMParams, cost) -> np.ndarray:
     def half_mask(mask):
         return None if mask is None else half(mask.astype(np.float32)) > 0.999
 
-    lo_d = int(np.floor(state.min_disp / 2))
-    hi_d = int(np.ceil((state.min_disp + state.ndisp - 1) / 2))
-    hi_d = lo_d + -(-(hi_d - lo_d + 1) // COARSE_RANGE_STEP) * COARSE_RANGE_STEP - 1
+    lo_d, nd_d = coarse_range(state.min_disp, state.ndisp)
     image_rows = -(-state.image_shape[0] // 2)
-    sub = MatchState(half(state.left), half(state.right), lo_d, hi_d - lo_d + 1, half_mask(state.left_valid),
+    sub = MatchState(half(state.left), half(state.right), lo_d, nd_d, half_mask(state.left_valid),
                      half_mask(state.right_valid),
                      wants=Wants(right=True, integer_cost=state.wants.integer_cost, volume=False),
                      image_rows=image_rows)
@@ -305,7 +311,7 @@ def _strip_bytes(p: SGMParams, height: int, width: int, ndisp: int, image_rows: 
             return peak
         # The next level down, as coarse_disparity makes it.
         height, image_rows, width = -(-height // 2), -(-image_rows // 2), -(-width // 2)
-        ndisp = -(-(ndisp // 2 + 1) // COARSE_RANGE_STEP) * COARSE_RANGE_STEP
+        ndisp = coarse_range(0, ndisp)[1]  # (a range from 0: the estimate knows no min_disp)
         windowed = _searches_level_coarse_to_fine(p, levels, image_rows, width, ndisp)
         levels = max(levels - 1, 1)
 
