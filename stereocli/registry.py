@@ -148,8 +148,9 @@ class StageTraits:
     small_twin: Callable | None = None
     #: ``f(params, width, ndisp) -> bytes``: fixed buffers per row strip (memory planner).
     buffer_bytes: Callable | None = None
-    #: ``f(params, height, width, ndisp) -> bytes or None``: an optimizer's own estimate of the
-    #: peak bytes of its search on a strip (volumes, per-pixel and row buffers), when it knows
+    #: ``f(params, height, width, ndisp, image_rows) -> bytes or None``: an optimizer's own
+    #: estimate of the peak bytes of its search on a strip of ``height`` rows of an image of
+    #: ``image_rows`` rows (volumes, per-pixel and row buffers), when it knows
     #: better than the volume count (a coarse-to-fine search never holds the whole volume);
     #: None: the volume count of ``volume_copies`` applies.
     strip_bytes: Callable | None = None

@@ -138,6 +138,7 @@ def estimate_memory(config: PipelineConfig, height: int, width: int, ndisp: int,
 WHOLE_SEARCH_BYTES = 128 * 2**20
 AUTO_STRIP_ROWS = 192
 
+
 def _own_search_bytes(config: PipelineConfig, height: int, width: int, ndisp: int,
                       image_rows: int = 0) -> float | None:
     """The optimizer's own estimate of its search on a strip (``strip_bytes``), or None."""
