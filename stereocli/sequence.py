@@ -299,11 +299,11 @@ class SequenceMatcher:
     def _repeating_config(self, notes: dict | None) -> PipelineConfig | None:
         """The config whose preprocess stages repeat what they did on the surveyed frame
         (``repeated_params``), or None when ``notes`` are unknown (the rows are measured)."""
+        from .matching.pipeline import preprocess_given
+
         if notes is None:
             return None
-        calls = [replace(c, params=c.stage.traits.repeated_params(c.params, notes.get(c.stage.name)))
-                 if c.stage.traits.repeated_params else c for c in self.config.preprocess]
-        return replace(self.config, preprocess=calls)
+        return replace(self.config, preprocess=preprocess_given(self.config, notes, "repeated_params"))
 
     def _share_at_ends(self, disparity: np.ndarray) -> float:
         """Share of the pixels (every other row and column) within half a pixel of an end of the range."""

@@ -618,9 +618,7 @@ def mirrored_disparity(prepared: PreparedPair, config: PipelineConfig, call) -> 
     before = config.refinement[:next(i for i, c in enumerate(config.refinement) if c is call)]
     # Preprocess stages that can repeat what they did to the pair (row_align's plane) do so
     # instead of measuring the mirrored pair again.
-    notes = prepared.state.notes
-    preprocess = [replace(c, params=c.stage.traits.mirrored_params(c.params, notes.get(c.stage.name)))
-                  if c.stage.traits.mirrored_params else c for c in config.preprocess]
+    preprocess = preprocess_given(config, prepared.state.notes, "mirrored_params")
     # The pair's working views and maps stay alive beside the mirrored run: its budget is what
     # they leave (the inputs it shares with the pair it counts itself).
     runtime = replace(config.runtime, memory_gb=config.runtime.memory_gb - prepared.images.beside / GIB)
@@ -635,6 +633,17 @@ def mirrored_disparity(prepared: PreparedPair, config: PipelineConfig, call) -> 
         if saved is not None:
             _current_config[threading.get_ident()] = saved
     return np.ascontiguousarray(result.disparity[:, ::-1])
+
+
+def preprocess_given(config: PipelineConfig, notes: dict, trait: str) -> list:
+    """``config``'s preprocess calls, those with the ``trait`` (``mirrored_params`` or
+    ``repeated_params``) given the params that repeat what they found on a pair (their note in
+    ``notes``, a pair's ``state.notes``) instead of measuring again."""
+    calls = []
+    for call in config.preprocess:
+        given = getattr(call.stage.traits, trait)
+        calls.append(replace(call, params=given(call.params, notes.get(call.stage.name))) if given else call)
+    return calls
 
 
 StripMap = Callable[[PreparedPair, PipelineConfig], list[StripResult]]
